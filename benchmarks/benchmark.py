@@ -1,0 +1,327 @@
+"""VP-FFD benchmark: bind / standard FFD / XYZ volume-preserving solve vs Blender's Lattice modifier.
+
+Run from the repository root:
+
+    .venv/bin/python -m benchmarks.benchmark [--sizes 6,7,8] [--repeat 7] [--out FILE.json] [--no-blender]
+
+Icospheres of subdivision 6, 7, 8 (40,962 / 163,842 / 655,362 vertices, radius 0.45) inside a
+10x10x10 B-spline lattice spanning [-0.5, 0.5]^3, deformed deterministically (squash along Z, twist
+about Z, small seeded noise). For float32 and float64 bindings it times bind (once), deform and
+solve(axes="XYZ") (median and min over --repeat; max(3, repeat // 2) for sizes >= 8), and in the same
+process Blender's own Lattice modifier on the same mesh and lattice (``modifier.execution_time``).
+Progress goes to stderr, the JSON report to stdout (and to --out). This is a benchmark, not a test:
+it prints figures and ratios and exits 0 whether or not the targets are met.
+"""
+import argparse
+import datetime
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+
+import numpy as np
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if _ROOT not in sys.path:
+    sys.path.insert(0, _ROOT)
+
+import vpffd_addon as vp  # noqa: E402
+
+LATTICE_SHAPE = (10, 10, 10)
+RADIUS = 0.45
+DTYPES = (("float32", np.float32), ("float64", np.float64))
+TARGET_BYTES_PER_VERTEX = 200
+TARGET_SOLVE_OVER_BLENDER = 3.0
+TARGET_SIZE_FOR_RATIO = 163842  # the ~160k mesh
+BLENDER_EVALS = 15
+BLENDER_WARMUPS = 2
+
+
+def log(*args):
+    print(*args, file=sys.stderr, flush=True)
+
+
+def deformed_points(lat, seed=0):
+    """Deterministic deformation of the rest grid: squash Z by 0.6, twist about Z, seeded noise."""
+    p = lat.rest_points.copy()
+    z = p[:, 2]
+    angle = 0.5 * z                                  # +-0.25 rad (~14 deg) at the top and bottom
+    c, s = np.cos(angle), np.sin(angle)
+    x, y = p[:, 0].copy(), p[:, 1].copy()
+    p[:, 0] = c * x - s * y
+    p[:, 1] = s * x + c * y
+    p[:, 2] = 0.6 * z
+    p += np.random.default_rng(seed).normal(scale=0.01, size=p.shape)
+    return p
+
+
+def timed(fn, repeat):
+    """(median ms, min ms, last result) of `repeat` calls of fn()."""
+    times, out = [], None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times), min(times), out
+
+
+# ------------------------------------------------------------------------------------ Blender
+
+def blender_modifier(verts, tris, points, evals=BLENDER_EVALS, warmups=BLENDER_WARMUPS):
+    """Blender's Lattice modifier on the same mesh and lattice. Returns (dict, evaluated verts)."""
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    scene = bpy.context.scene
+    V, F = len(verts), len(tris)
+    nu, nv, nw = LATTICE_SHAPE
+    n_points = nu * nv * nw
+
+    # Mesh at identity, built through foreach_set only.
+    me = bpy.data.meshes.new("bench_mesh")
+    me.vertices.add(V)
+    me.vertices.foreach_set("co", verts.astype(np.float32).ravel())
+    me.loops.add(3 * F)
+    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
+    me.polygons.add(F)
+    me.polygons.foreach_set("loop_start", np.arange(0, 3 * F, 3, dtype=np.int32))
+    me.update(calc_edges=True)
+    ob = bpy.data.objects.new("bench_mesh", me)
+    scene.collection.objects.link(ob)
+
+    # Lattice: rest co spans [-4.5, 4.5] (unit spacing); the object scale maps it onto [-0.5, 0.5].
+    lat = bpy.data.lattices.new("bench_lattice")
+    lat.points_u, lat.points_v, lat.points_w = nu, nv, nw
+    lat.interpolation_type_u = lat.interpolation_type_v = lat.interpolation_type_w = "KEY_BSPLINE"
+    co = np.empty(3 * n_points, np.float32)
+    lat.points.foreach_get("co", co)
+    co = co.reshape(n_points, 3).astype(np.float64)
+    extent = co.max(0) - co.min(0)                    # 9 per axis
+    scale = float(extent[0])
+    lat_ob = bpy.data.objects.new("bench_lattice", lat)
+    lat_ob.scale = (1.0 / scale,) * 3
+    scene.collection.objects.link(lat_ob)
+    base = (np.asarray(points, np.float64) * scale).astype(np.float32).ravel()
+    lat.points.foreach_set("co_deform", base)
+
+    mod = ob.modifiers.new("Lattice", "LATTICE")
+    mod.object = lat_ob
+
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    depsgraph.update()
+    me_eval = ob.evaluated_get(depsgraph).data
+    if len(me_eval.vertices) != V:
+        raise RuntimeError("Blender changed the vertex count")
+    out = np.empty(3 * V, np.float32)
+    me_eval.vertices.foreach_get("co", out)
+    evaluated = out.reshape(V, 3).astype(np.float64)
+    rest_ok = bool(np.allclose(co / scale, vp.Lattice(LATTICE_SHAPE).rest_points, atol=1e-6))
+
+    exec_ms, wall_ms = [], []
+    for i in range(warmups + evals):
+        # A tiny i-dependent change so that every evaluation really recomputes the modifier.
+        lat.points.foreach_set("co_deform", base + np.float32(1e-4 * ((i % 2) + 1)))
+        lat.update_tag()
+        t0 = time.perf_counter()
+        depsgraph.update()
+        ms = float(ob.evaluated_get(depsgraph).modifiers[0].execution_time) * 1e3
+        wall = (time.perf_counter() - t0) * 1e3
+        if i >= warmups:
+            exec_ms.append(ms)
+            wall_ms.append(wall)
+
+    info = {
+        "execution_time_ms_median": statistics.median(exec_ms),
+        "execution_time_ms_min": min(exec_ms),
+        "depsgraph_update_wall_ms_median": statistics.median(wall_ms),
+        "evaluations": evals,
+        "warmups": warmups,
+        "rest_grid_matches_core": rest_ok,
+    }
+    # Leave an empty scene so the next size does not carry this one's memory.
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    return info, evaluated
+
+
+# ------------------------------------------------------------------------------------ one size
+
+def bench_size(sub, repeat, use_blender):
+    verts, tris = vp.icosphere(sub, RADIUS)
+    V = len(verts)
+    rep = max(3, repeat // 2) if sub >= 8 else repeat
+    lat = vp.Lattice(LATTICE_SHAPE, interpolation="BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    points = deformed_points(lat)
+    log(f"[size {sub}] V={V:,} F={len(tris):,} repeat={rep}")
+    res = {"subdivisions": sub, "n_verts": V, "n_faces": int(len(tris)), "repeat": rep, "dtypes": {}}
+
+    deformed64 = None
+    for name, dt in DTYPES:
+        t0 = time.perf_counter()
+        b = vp.bind(lat, verts, tris, dtype=dt)
+        bind_ms = (time.perf_counter() - t0) * 1e3
+        b.deform(points)                               # warm-up
+        d_med, d_min, d_out = timed(lambda: b.deform(points), rep)
+        b.solve(points, axes="XYZ")                    # warm-up
+        s_med, s_min, sol = timed(lambda: b.solve(points, axes="XYZ"), rep)
+        rest = b.rest_volume
+        entry = {
+            "bind_ms": bind_ms,
+            "deform_ms_median": d_med, "deform_ms_min": d_min,
+            "solve_xyz_ms_median": s_med, "solve_xyz_ms_min": s_min,
+            "solve_reported_seconds_last": float(sol.seconds),
+            "bind_ns_per_vertex": bind_ms * 1e6 / V,
+            "deform_ns_per_vertex": d_med * 1e6 / V,
+            "solve_xyz_ns_per_vertex": s_med * 1e6 / V,
+            "binding_nbytes": int(b.nbytes),
+            "bytes_per_vertex": b.nbytes / V,
+            "volume": {
+                "rest": float(rest),
+                "plain_change_pct": 100.0 * (sol.plain_volume / rest - 1.0),
+                "corrected_change_pct": 100.0 * (sol.volume / rest - 1.0),
+                "target": float(sol.target_volume),
+                "relative_error": abs(sol.volume - sol.target_volume) / abs(sol.target_volume),
+            },
+            "warnings": list(sol.warnings),
+        }
+        if name == "float64":
+            deformed64 = d_out
+        else:
+            entry["deform_vs_float64_max_abs"] = None  # filled below
+            deformed32 = d_out
+        res["dtypes"][name] = entry
+        log(f"  {name}: bind {bind_ms:8.1f} ms | deform {d_med:7.2f} ms ({d_med * 1e6 / V:6.1f} ns/v) | "
+            f"solve XYZ {s_med:7.2f} ms ({s_med * 1e6 / V:6.1f} ns/v) | {b.nbytes / V:6.1f} B/v | "
+            f"volume plain {entry['volume']['plain_change_pct']:+.2f}% -> "
+            f"{entry['volume']['corrected_change_pct']:+.2e}% (rel err {entry['volume']['relative_error']:.1e})")
+        del b, sol, d_out
+    res["dtypes"]["float32"]["deform_vs_float64_max_abs"] = float(np.abs(deformed32 - deformed64).max())
+
+    if use_blender:
+        info, evaluated = blender_modifier(verts, tris, points)
+        info["deform_max_abs_diff_vs_core_float64"] = float(np.abs(evaluated - deformed64).max())
+        info["deform_max_abs_diff_vs_core_float32"] = float(np.abs(evaluated - deformed32).max())
+        bl = info["execution_time_ms_median"]
+        info["ns_per_vertex"] = bl * 1e6 / V
+        res["blender"] = info
+        res["ratios_vs_blender"] = {
+            name: {"deform": e["deform_ms_median"] / bl, "solve_xyz": e["solve_xyz_ms_median"] / bl}
+            for name, e in res["dtypes"].items()}
+        log(f"  blender modifier: {bl:7.2f} ms ({bl * 1e6 / V:6.1f} ns/v), depsgraph wall "
+            f"{info['depsgraph_update_wall_ms_median']:.1f} ms | max |blender - core f64| "
+            f"{info['deform_max_abs_diff_vs_core_float64']:.2e} | solve/blender " + ", ".join(
+                f"{n} {r['solve_xyz']:.2f}x" for n, r in res["ratios_vs_blender"].items()))
+    return res
+
+
+def summarize(results, use_blender):
+    summary = {"linearity": {}, "targets": {}}
+    by_v = sorted(results, key=lambda r: r["n_verts"])
+    keys = [("deform", "deform_ns_per_vertex"), ("solve_xyz", "solve_xyz_ns_per_vertex"),
+            ("bind", "bind_ns_per_vertex")]
+    for name, _ in DTYPES:
+        lin = {}
+        for label, key in keys:
+            ns = [r["dtypes"][name][key] for r in by_v]
+            lin[label] = {
+                "ns_per_vertex_by_size": {str(r["n_verts"]): v for r, v in zip(by_v, ns)},
+                # 1.0 = perfectly linear; > 1 means the per-vertex cost grows with V.
+                "largest_over_smallest_ns_per_vertex": ns[-1] / ns[0] if len(ns) > 1 else None,
+            }
+            if len(ns) > 1:
+                # Exponent k in time ~ V^k fitted over the sizes (1.0 = linear).
+                vs = np.log([r["n_verts"] for r in by_v])
+                ts = np.log([n * r["n_verts"] for n, r in zip(ns, by_v)])
+                lin[label]["fitted_exponent"] = float(np.polyfit(vs, ts, 1)[0])
+        summary["linearity"][name] = lin
+    if use_blender:
+        ns = [r["blender"]["ns_per_vertex"] for r in by_v]
+        summary["linearity"]["blender"] = {
+            "ns_per_vertex_by_size": {str(r["n_verts"]): v for r, v in zip(by_v, ns)},
+            "largest_over_smallest_ns_per_vertex": ns[-1] / ns[0] if len(ns) > 1 else None}
+
+    t = summary["targets"]
+    t["bytes_per_vertex_target"] = TARGET_BYTES_PER_VERTEX
+    for name, _ in DTYPES:
+        worst = max(r["dtypes"][name]["bytes_per_vertex"] for r in results)
+        t[f"bytes_per_vertex_max_{name}"] = worst
+        t[f"bytes_per_vertex_ok_{name}"] = worst <= TARGET_BYTES_PER_VERTEX
+    if use_blender:
+        t["solve_over_blender_target"] = TARGET_SOLVE_OVER_BLENDER
+        ref = [r for r in results if r["n_verts"] == TARGET_SIZE_FOR_RATIO]
+        if not ref:  # the ~160k mesh was not run: judge on the closest size
+            ref = [min(results, key=lambda r: abs(np.log(r["n_verts"] / TARGET_SIZE_FOR_RATIO)))]
+        r = ref[0]
+        t["solve_over_blender_judged_on_n_verts"] = r["n_verts"]
+        for name, _ in DTYPES:
+            ratio = r["ratios_vs_blender"][name]["solve_xyz"]
+            t[f"solve_over_blender_{name}"] = ratio
+            t[f"solve_over_blender_ok_{name}"] = ratio <= TARGET_SOLVE_OVER_BLENDER
+    return summary
+
+
+def environment(use_blender):
+    env = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "vpffd_addon": getattr(vp, "__version__", None),
+        "platform": platform.platform(),
+        "machine": platform.machine(),
+        "processor": platform.processor() or None,
+        "cpu_count": os.cpu_count(),
+        "cpu_affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        "bpy": None,
+    }
+    if use_blender:
+        import bpy
+        env["bpy"] = bpy.app.version_string
+    return env
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="6,7,8",
+                    help="icosphere subdivisions, comma-separated (6: 40,962, 7: 163,842, 8: 655,362 verts)")
+    ap.add_argument("--repeat", type=int, default=7, help="timed runs per figure (sizes >= 8: max(3, repeat//2))")
+    ap.add_argument("--out", help="also write the JSON report to this file")
+    ap.add_argument("--no-blender", action="store_true", help="skip Blender's Lattice modifier (no bpy needed)")
+    args = ap.parse_args(argv)
+    sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
+    if not sizes or args.repeat < 1:
+        ap.error("need at least one size and --repeat >= 1")
+    use_blender = not args.no_blender
+
+    t0 = time.perf_counter()
+    env = environment(use_blender)
+    log(f"VP-FFD benchmark: sizes {sizes}, repeat {args.repeat}, lattice {LATTICE_SHAPE} BSPLINE, "
+        f"numpy {env['numpy']}, bpy {env['bpy']}, {env['cpu_count']} CPUs")
+    # Warm up the code paths once on a small mesh so the first timed bind is not a cold start.
+    wv, wf = vp.icosphere(3, RADIUS)
+    wlat = vp.Lattice(LATTICE_SHAPE, interpolation="BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    for _, dt in DTYPES:
+        vp.bind(wlat, wv, wf, dtype=dt).solve(deformed_points(wlat), axes="XYZ")
+    results = [bench_size(s, args.repeat, use_blender) for s in sizes]
+    report = {
+        "benchmark": "vpffd",
+        "lattice": {"shape": list(LATTICE_SHAPE), "interpolation": "BSPLINE", "bounds": [[-0.5] * 3, [0.5] * 3],
+                    "deformation": "squash z*0.6, twist 0.5 rad per unit z about z, N(0, 0.01) noise seed 0"},
+        "mesh": {"kind": "icosphere", "radius": RADIUS},
+        "environment": env,
+        "results": results,
+        "summary": summarize(results, use_blender),
+        "total_seconds": None,
+    }
+    report["total_seconds"] = time.perf_counter() - t0
+    text = json.dumps(report, indent=2)
+    print(text)
+    if args.out:
+        with open(args.out, "w") as fh:
+            fh.write(text + "\n")
+    log(f"done in {report['total_seconds']:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,21 @@
+"""VP-FFD core: Blender-exact lattice deformation with exact volume preservation (NumPy only).
+
+    import vpffd_addon as vp
+    lat = vp.Lattice((4, 4, 4), interpolation="BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    b = vp.bind(lat, verts, tris)          # verts (V, 3) in lattice space, tris (F, 3)
+    sol = b.solve(points, axes="XY")       # points (N, 3): the moved lattice
+    sol.verts, sol.volume, sol.plain_volume
+
+Method: Hahmann et al., "Volume Preserving FFD for Programmable Graphics Hardware" (2011).
+"""
+from .bases import INTERPOLATIONS
+from .binding import Binding, bind
+from .jacobian import jacobian_det
+from .lattice import Lattice
+from .shapes import box, icosphere
+from .solve import Solution
+from .volume import signed_volume
+
+__all__ = ["INTERPOLATIONS", "Binding", "Lattice", "Solution", "bind", "box", "icosphere",
+           "jacobian_det", "signed_volume"]
+__version__ = "0.1.0"

@@ -1,0 +1,108 @@
+"""Per-axis basis functions of the lattice: Blender's four interpolations and Bernstein (BEZIER).
+
+Every axis is described by a few *taps*: for each coordinate `x` (V,), a first grid index
+`first` (V,) and weights `w` (V, K) so that the axis contributes `sum_k w[:, k] * D[clip(first + k)]`.
+Blender's kinds use K = 4 taps around the cell with indices clamped to the grid; a one-point axis
+uses K = 1 with weight 1; BEZIER uses all K = n points with the Bernstein polynomials.
+"""
+import numpy as np
+
+#: Blender's lattice interpolation names (without the ``KEY_`` prefix) plus the global Bernstein basis.
+INTERPOLATIONS = ("LINEAR", "CARDINAL", "CATMULL_ROM", "BSPLINE", "BEZIER")
+
+# Tension of Blender's cardinal splines (key_curve_position_weights).
+_CARDINAL_FC = {"CARDINAL": 0.71, "CATMULL_ROM": 0.5}
+
+
+def _local_weights(t, kind):
+    """Blender's 4-tap weights and their t-derivatives for t (V,) in [0, 1): two (V, 4) arrays."""
+    t2 = t * t
+    t3 = t2 * t
+    if kind == "LINEAR":
+        z = np.zeros_like(t)
+        one = np.ones_like(t)
+        return np.stack([z, 1.0 - t, t, z], 1), np.stack([z, -one, one, z], 1)
+    if kind == "BSPLINE":
+        s = 1.0 - t
+        w = np.stack([s * s * s, 3 * t3 - 6 * t2 + 4, -3 * t3 + 3 * t2 + 3 * t + 1, t3], 1) / 6.0
+        dw = np.stack([-3 * s * s, 9 * t2 - 12 * t, -9 * t2 + 6 * t + 3, 3 * t2], 1) / 6.0
+        return w, dw
+    fc = _CARDINAL_FC[kind]
+    w = np.stack([-fc * t3 + 2 * fc * t2 - fc * t,
+                  (2 - fc) * t3 + (fc - 3) * t2 + 1,
+                  (fc - 2) * t3 + (3 - 2 * fc) * t2 + fc * t,
+                  fc * t3 - fc * t2], 1)
+    dw = np.stack([-3 * fc * t2 + 4 * fc * t - fc,
+                   3 * (2 - fc) * t2 + 2 * (fc - 3) * t,
+                   3 * (fc - 2) * t2 + 2 * (3 - 2 * fc) * t + fc,
+                   3 * fc * t2 - 2 * fc * t], 1)
+    return w, dw
+
+
+def _bernstein(t, degree):
+    """Bernstein polynomials of `degree` at t (V,): (V, degree + 1), by de Casteljau's recurrence."""
+    b = np.ones((len(t), 1))
+    s = 1.0 - t
+    for _ in range(degree):
+        nb = np.zeros((len(t), b.shape[1] + 1))
+        nb[:, :-1] += s[:, None] * b
+        nb[:, 1:] += t[:, None] * b
+        b = nb
+    return b
+
+
+def axis_taps(x, n, lo, hi, kind, derivative=False):
+    """Taps of one lattice axis for coordinates `x` (V,) in lattice space.
+
+    Returns ``(first, w)`` or, with ``derivative``, ``(first, w, dw)``: `first` (V,) int64 grid
+    index of tap 0 (tap k addresses grid index ``clip(first + k, 0, n - 1)``), weights `w` (V, K)
+    and `dw` (V, K) = d w / d x. Out-of-grid taps are folded onto the clamped grid point, exactly
+    as Blender's Lattice modifier clamps them, so vertices outside the lattice behave as in Blender.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    V = len(x)
+    if n == 1:
+        ones = np.ones((V, 1))
+        out = (np.zeros(V, np.int64), ones)
+        return out + (np.zeros((V, 1)),) if derivative else out
+    if kind == "BEZIER":
+        width = hi - lo
+        u = (x - lo) / width
+        inside = (u > 0.0) & (u < 1.0)
+        t = np.clip(u, 0.0, 1.0)
+        w = _bernstein(t, n - 1)
+        first = np.zeros(V, np.int64)
+        if not derivative:
+            return first, w
+        b = _bernstein(t, n - 2)
+        dw = np.zeros_like(w)
+        dw[:, :-1] -= b
+        dw[:, 1:] += b
+        dw *= (n - 1) / width * inside[:, None]  # clamped outside: the map is constant there
+        return first, w, dw
+    du = (hi - lo) / (n - 1)
+    # Clipping u keeps floor() in range; beyond two cells outside all taps clamp to one point anyway.
+    u = np.clip((x - lo) / du, -3.0, n + 2.0)
+    i = np.floor(u)
+    t = u - i
+    i = i.astype(np.int64)
+    w4, dw4 = _local_weights(t, kind)
+    first = np.clip(i, 0, n - 1) - 1
+    # Fold each of Blender's taps i-1..i+2 (clamped to the grid) onto offsets 0..3 from `first`.
+    offsets = np.clip(i[:, None] - 1 + np.arange(4), 0, n - 1) - first[:, None]
+    rows = np.arange(V)
+    w = np.zeros((V, 4))
+    dw = np.zeros((V, 4))
+    for k in range(4):
+        w[rows, offsets[:, k]] += w4[:, k]
+        dw[rows, offsets[:, k]] += dw4[:, k]
+    if not derivative:
+        return first, w
+    return first, w, dw / du
+
+
+def tap_count(n, kind):
+    """Number of taps K of an axis with `n` points and interpolation `kind`."""
+    if n == 1:
+        return 1
+    return n if kind == "BEZIER" else 4

@@ -1,0 +1,209 @@
+"""Binding a mesh to a lattice: the rest embedding, stored so that per-frame products are cheap.
+
+The whole deformation is ``x' = x0 + S B (P - P0)`` (NOTES.md section 2). B depends only on the rest
+embedding, so it is built once here. Vertices are sorted by (island, lattice cell) and cut into
+blocks of `block` slots that share one set of Ku*Kv*Kw control points; products with B and B^T are
+then batched small matrix products per block. B is kept factored, (v x u) weights and w weights per
+vertex, to hold memory near 100 bytes per vertex in float32.
+"""
+import numpy as np
+
+from . import parallel
+from .bases import axis_taps
+from .lattice import Lattice
+from .mesh import check_tris, check_verts, connected_components, is_closed
+from .volume import gradient_component
+
+_BLOCK_SIZES = (64, 32, 16, 8)
+_MAX_PADDING = 1.15  # accept a block size when padded slots stay within 15% of the vertex count
+
+
+class Binding:
+    """A mesh bound to a lattice; made by `bind`. Coordinates are in lattice space.
+
+    Public attributes: `lattice`, `dtype`, `n_verts`, `n_faces`, `is_closed`, `rest_volume`,
+    `n_islands`, `island_labels` (V,), `rest_island_volumes` (n_islands,), `influence` (V,),
+    `nbytes`.
+    """
+
+    def deform(self, points):
+        """Standard FFD (Blender's Lattice modifier) for control points `points` (N, 3): (V, 3) float64."""
+        D = self._displacements(points)
+        X = self.x0 + np.stack([self._forward(D[:, c]) for c in range(3)])
+        return self._to_verts(X)
+
+    def solve(self, points, **options):
+        """Volume-preserving FFD; see `vpffd_addon.solve.solve` for the options. Returns a Solution."""
+        from .solve import solve
+        return solve(self, points, **options)
+
+    @property
+    def influence(self):
+        """(V,) per-vertex influence (vertex-group weight * strength), in the binding's dtype."""
+        return self.slot_influence[self.slot]
+
+    @property
+    def island_labels(self):
+        """(V,) connected component of each vertex, numbered 0..n_islands-1 by lowest vertex."""
+        return self.block_island[self.slot // self.ww.shape[1]]
+
+    @property
+    def nbytes(self):
+        """Bytes held by the arrays of this binding."""
+        arrays = [a for a in vars(self).values() if isinstance(a, np.ndarray)] + self.corner_parts
+        return int(sum(a.nbytes for a in arrays))
+
+    # -- products with the factored B (all in slot order; slots = padded, block-sorted vertices) --
+
+    def _forward(self, d):
+        """(S B d) at every slot for a scalar field d (N,) on the control points: (n_slots,)."""
+        d = np.asarray(d, dtype=self.dtype)
+        out = np.empty(self.ww.shape[:2], self.dtype)
+
+        def part(bl):
+            T = np.matmul(self.ww[bl], d[self.idx[bl]])
+            np.einsum("bsk,bsk->bs", T, self.wuv[bl], out=out[bl])
+        parallel.run(part, self.block_parts)
+        return out.reshape(-1)
+
+    def _block_transpose(self, g):
+        """Per-block pieces of (S B)^T g for g (n_slots,): (n_blocks, Kw, Kv*Ku), to scatter with idx."""
+        g = np.asarray(g, dtype=self.dtype).reshape(self.ww.shape[:2] + (1,))
+        out = np.empty(self.idx.shape, self.dtype)
+
+        def part(bl):
+            np.matmul((self.ww[bl] * g[bl]).transpose(0, 2, 1), self.wuv[bl], out=out[bl])
+        parallel.run(part, self.block_parts)
+        return out
+
+    def _transpose(self, g):
+        """(S B)^T g for g (n_slots,): (N,) float64."""
+        return np.bincount(self.idx.ravel(), self._block_transpose(g).ravel(), self.lattice.n_points)
+
+    def _gradient(self, p, q):
+        """Volume gradient along e at every slot from the coordinates p, q (n_slots,) on the frame
+        vectors completing e (see `volume.gradient_component`): (n_slots,) float64."""
+        n = self.x0.shape[1]
+        parts = parallel.run(lambda c: gradient_component(p, q, c, n), self.corner_parts)
+        return parts[0] if len(parts) == 1 else np.add(*parts) if len(parts) == 2 else np.sum(parts, 0)
+
+    def _rows(self, slots):
+        """Rows of S B for the given vertex slots (k,): dense (k, N) float64."""
+        nb, bs, _ = self.ww.shape
+        blk, pos = np.divmod(np.asarray(slots, dtype=np.int64), bs)
+        w = (self.ww[blk, pos][:, :, None] * self.wuv[blk, pos][:, None, :]).reshape(len(blk), -1)
+        N = self.lattice.n_points
+        keys = (np.arange(len(blk))[:, None] * N + self.idx[blk].reshape(len(blk), -1)).ravel()
+        return np.bincount(keys, w.ravel().astype(np.float64), len(blk) * N).reshape(len(blk), N)
+
+    def _displacements(self, points):
+        """Validated control points (N, 3) minus the rest grid: (N, 3) float64."""
+        P = np.asarray(points, dtype=np.float64)
+        N = self.lattice.n_points
+        if P.shape != (N, 3):
+            raise ValueError(f"points must have shape ({N}, 3) for a {self.lattice.shape} lattice, got {P.shape}")
+        bad = ~np.isfinite(P).all(1)
+        if bad.any():
+            raise ValueError(f"points has non-finite coordinates at {int(bad.sum())} control points "
+                             f"(first: index {int(np.argmax(bad))})")
+        return P - self.lattice.rest_points
+
+    def _to_verts(self, X):
+        """Slot-ordered coordinates (3, n_slots) relative to the centre -> (V, 3) float64 in lattice space."""
+        out = np.empty((self.n_verts, 3))
+        for c in range(3):
+            out[:, c] = np.take(X[c], self.slot)
+        out += self.centre
+        return out
+
+
+def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
+    """Bind a triangle mesh to `lattice` (a `Lattice`).
+
+    rest_verts: (V, 3) vertex positions in lattice space. tris: (F, 3) vertex indices.
+    influence: (V,) per-vertex factor on the displacement (vertex-group weight * strength); default 1.
+    dtype: float64 (exact to ~1e-15) or float32 (half the memory traffic; Blender stores float32).
+    Returns a `Binding`. Open meshes are allowed (`is_closed` False); their volume is measured
+    about the lattice centre.
+    """
+    if not isinstance(lattice, Lattice):
+        raise ValueError(f"bind needs a vpffd_addon.Lattice, got {type(lattice).__name__}")
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    verts = check_verts(rest_verts, "rest_verts")
+    V = len(verts)
+    tris = check_tris(tris, V)
+    if influence is None:
+        s = np.ones(V)
+    else:
+        s = np.asarray(influence, dtype=np.float64)
+        if s.shape != (V,):
+            raise ValueError(f"influence must have shape ({V},), got {s.shape}")
+        if not np.isfinite(s).all():
+            raise ValueError(f"influence has non-finite values at {int((~np.isfinite(s)).sum())} vertices")
+
+    b = Binding()
+    b.lattice, b.dtype, b.n_verts, b.n_faces = lattice, dtype, V, len(tris)
+    b.centre = lattice.centre
+    b.is_closed = is_closed(tris, V)
+    rel = verts - b.centre
+
+    taps = [axis_taps(verts[:, a], lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a])
+            for a in range(3)]
+    labels, n_islands = connected_components(tris, V)
+    b.n_islands = n_islands
+
+    # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded).
+    cells = [first + 1 for first, _ in taps]          # first >= -1
+    dims = [n + 1 for n in lattice.shape]
+    key = ((labels * dims[2] + cells[2]) * dims[1] + cells[1]) * dims[0] + cells[0]
+    order = np.argsort(key, kind="stable")
+    _, run_start, run_len = np.unique(key[order], return_index=True, return_counts=True)
+    for bs in _BLOCK_SIZES:
+        blocks_per_run = -(-run_len // bs)
+        if blocks_per_run.sum() * bs <= _MAX_PADDING * V:
+            break
+    n_blocks = int(blocks_per_run.sum())
+    run_of = np.repeat(np.arange(len(run_len)), run_len)               # run of each sorted vertex
+    first_block = np.cumsum(blocks_per_run) - blocks_per_run
+    local = np.arange(V) - run_start[run_of]
+    slot = np.empty(V, np.int64)
+    slot[order] = (first_block[run_of] + local // bs) * bs + local % bs
+    b.slot = slot
+    n_slots = n_blocks * bs
+
+    Ku, Kv, Kw = (w.shape[1] for _, w in taps)
+    wuv = np.zeros((n_slots, Kv * Ku), dtype)
+    wuv[slot] = (taps[1][1][:, :, None] * taps[0][1][:, None, :]).reshape(V, Kv * Ku)
+    ww = np.zeros((n_slots, Kw), dtype)
+    ww[slot] = taps[2][1] * s[:, None]
+    b.slot_influence = np.zeros(n_slots, dtype)
+    b.slot_influence[slot] = s
+    b.wuv = wuv.reshape(n_blocks, bs, Kv * Ku)
+    b.ww = ww.reshape(n_blocks, bs, Kw)
+
+    # Control points of each block, from the first vertex of its run.
+    block_vertex = order[run_start[np.repeat(np.arange(len(run_len)), blocks_per_run)]]
+    grid = [np.clip(taps[a][0][block_vertex, None] + np.arange(K), 0, lattice.shape[a] - 1)
+            for a, K in enumerate((Ku, Kv, Kw))]
+    nu, nv, _ = lattice.shape
+    b.idx = ((grid[2][:, :, None, None] * nv + grid[1][:, None, :, None]) * nu
+             + grid[0][:, None, None, :]).reshape(n_blocks, Kw, Kv * Ku)
+    b.block_island = labels[block_vertex]
+
+    x0 = np.zeros((3, n_slots), dtype)
+    x0[:, slot] = rel.T
+    b.x0 = x0
+    # Faces as (3, F) slots, ordered by their lowest slot so that gathers walk memory forwards.
+    corners = slot[tris]
+    corners = corners[np.argsort(corners.min(1), kind="stable")]
+    b.corner_parts = [np.ascontiguousarray(corners[fs].T) for fs in parallel.split(len(corners), V)]
+    b.block_parts = parallel.split(n_blocks, V)
+
+    face_island = labels[tris[:, 0]]
+    pv = rel[tris]
+    face_vol = np.einsum("ij,ij->i", pv[:, 0], np.cross(pv[:, 1], pv[:, 2])) / 6.0
+    b.rest_island_volumes = np.bincount(face_island, face_vol, n_islands)
+    b.rest_volume = float(face_vol.sum())
+    return b

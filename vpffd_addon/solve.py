@@ -1,0 +1,291 @@
+"""Exact volume-preserving FFD: the sequential per-direction closed form (paper sections 3-5).
+
+Along one fixed direction e the volume is exactly linear in the control-point offsets, so each
+direction is a least-squares problem with linear constraints (NOTES.md section 4):
+minimise ``sum_i |t_i|^2 / m_i`` subject to ``C t = r``, solved by ``t = M C^T (C M C^T)^+ r`` with
+M = diag(mobility). C has one volume row (alpha = (S B)^T g_e, eq. 10-12), or one per island, and
+one row per pin (paper eq. 21). With one volume row and unit mobility this is eq. (17).
+"""
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import tolerances as tol
+
+_AXES = {"X": 0, "Y": 1, "Z": 2}
+
+
+@dataclass
+class Solution:
+    """Result of `Binding.solve`. Coordinates in lattice space."""
+    verts: np.ndarray                 #: (V, 3) deformed, volume-corrected vertices
+    points: np.ndarray                #: (N, 3) corrected control points: deform(points) == verts
+    volume: float                     #: volume of `verts`
+    target_volume: float              #: volume_scale * rest volume
+    plain_volume: float               #: volume of the plain FFD of the input points
+    directions: np.ndarray            #: (m, 3) unit directions that were used, in order
+    island_volumes: np.ndarray = None         #: (k,) per-island volumes when islands=True
+    island_target_volumes: np.ndarray = None  #: (k,) their targets
+    warnings: tuple = ()              #: constraints that could not be met, in words
+    seconds: float = 0.0              #: wall time of the solve
+
+
+def parse_directions(axes, directions):
+    """Unit directions (m, 3) from `directions` rows, or from an axis string such as "XZ"."""
+    if directions is not None:
+        d = np.asarray(directions, dtype=np.float64)
+        if d.ndim == 1 and d.shape == (3,):
+            d = d[None]
+        if d.ndim != 2 or d.shape[1] != 3:
+            raise ValueError(f"directions must have shape (m, 3), got {d.shape}")
+        if not np.isfinite(d).all():
+            raise ValueError("directions must be finite")
+        norm = np.linalg.norm(d, axis=1)
+        if (norm == 0).any():
+            raise ValueError(f"direction {int(np.argmin(norm))} is the zero vector")
+        return d / norm[:, None]
+    if axes is None:
+        axes = ""
+    if not isinstance(axes, str):
+        raise ValueError(f"axes must be a string such as 'XYZ', got {axes!r}")
+    key = axes.upper()
+    if any(c not in _AXES for c in key) or len(set(key)) != len(key):
+        raise ValueError(f"axes must be distinct letters from 'XYZ', got {axes!r}")
+    return np.eye(3)[[_AXES[c] for c in key]].reshape(-1, 3)
+
+
+def _check_mobility(mobility, N):
+    if mobility is None:
+        return None
+    m = np.asarray(mobility, dtype=np.float64)
+    if m.shape != (N,):
+        raise ValueError(f"mobility must have shape ({N},), got {m.shape}")
+    if not np.isfinite(m).all() or (m < 0).any() or (m > 1).any():
+        raise ValueError("mobility must be finite and within [0, 1] (0 keeps a control point fixed)")
+    return m
+
+
+def _check_pins(pins, binding):
+    """(slots (k,), targets (k, 3) relative to the lattice centre, vertex indices (k,))."""
+    pins = list(pins) if pins is not None else []
+    if not pins:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)
+    try:
+        index = np.array([int(p[0]) for p in pins], dtype=np.int64)
+        target = np.array([np.asarray(p[1], dtype=np.float64).reshape(3) for p in pins])
+    except (TypeError, ValueError, IndexError) as exc:
+        raise ValueError(f"pins must be a sequence of (vertex index, (x, y, z)) pairs: {exc}") from None
+    bad = (index < 0) | (index >= binding.n_verts)
+    if bad.any():
+        raise ValueError(f"pin on vertex {int(index[bad][0])}, outside [0, {binding.n_verts})")
+    if not np.isfinite(target).all():
+        raise ValueError("pin targets must be finite")
+    free = binding.influence[index] == 0
+    if free.any():
+        raise ValueError(f"pin on vertex {int(index[free][0])}, which the lattice does not influence "
+                         "(its influence is 0)")
+    return binding.slot[index], target - binding.centre, index
+
+
+def _frame(e):
+    """(axis, p, q): the axis index when e is a coordinate axis (sign does not matter), else None
+    with unit p, q completing e to a right-handed orthonormal frame (e, p, q)."""
+    k = int(np.argmax(np.abs(e)))
+    if np.count_nonzero(e) == 1:
+        return k, None, None
+    a = np.zeros(3)
+    a[int(np.argmin(np.abs(e)))] = 1.0
+    p = np.cross(e, a)
+    p /= np.linalg.norm(p)
+    return None, p, np.cross(e, p)
+
+
+class _State:
+    """Per-solve working state.
+
+    D (N, 3): current control-point displacements P - P0. X (3, n_slots): slot coordinates relative
+    to the lattice centre, a component refreshed (x0 + S B D) only when a gradient needs it: a step
+    along axis a changes only component a, and its volume before and after follows from
+    ``V = x0_a . g + D_a . alpha`` (homogeneity), so no forward product is spent on it.
+    """
+
+    def __init__(self, b, points, mobility, pins, islands, targets):
+        self.b = b
+        self.D = np.array(points, dtype=np.float64) - b.lattice.rest_points
+        self.X = b.x0.copy()
+        self.fresh = [False, False, False]
+        self.mob = mobility
+        self.pin_slots, self.pin_targets, self.pin_index = pins
+        self.pin_rows = b._rows(self.pin_slots) if len(self.pin_slots) else None
+        self.islands = islands
+        self.targets = targets                      # (k,) volume targets (k = 1 or islands)
+        self.slot_island = np.repeat(b.block_island, b.ww.shape[1]) if islands else None
+        self.volumes = None                         # (k,) current volumes, known after a gradient
+        self.used = np.zeros(len(targets), bool)    # volume rows that could move at least once
+        self.unmet_pins = set()
+        f32 = b.dtype == np.float32
+        self.degenerate = tol.DEGENERATE_REL_F32 if f32 else tol.DEGENERATE_REL_F64
+        self.met_rel = tol.MET_REL_F32 if f32 else tol.MET_REL_F64
+        rest = b.rest_island_volumes if islands else np.array([b.rest_volume])
+        scale = np.maximum(np.abs(targets), np.abs(rest))
+        self.vol_scale = np.maximum(scale, np.abs(b.rest_volume) * 1e-6 + 1e-300)
+
+    def ensure(self, *components):
+        """Bring X's components up to date with D."""
+        for c in components:
+            if not self.fresh[c]:
+                self.X[c] = self.b.x0[c] + self.b._forward(self.D[:, c])
+                self.fresh[c] = True
+
+    def _split(self, values):
+        """Sum per-slot values (n_slots,) per volume row: (k,)."""
+        if self.islands:
+            return np.bincount(self.slot_island, values, len(self.targets))
+        return np.array([values.sum()])
+
+    def gradient(self, e):
+        """(axis, g, base) for unit direction e: g (n_slots,) the e-gradient at the current
+        vertices and, for an axis, base (k,) = x0_a . g per row, so V = base + D_a . alpha."""
+        axis, p, q = _frame(e)
+        if axis is not None:
+            a1, a2 = (axis + 1) % 3, (axis + 2) % 3
+            self.ensure(a1, a2)
+            g = self.b._gradient(self.X[a1], self.X[a2])
+            return axis, g, self._split(self.b.x0[axis] * g)
+        self.ensure(0, 1, 2)
+        return None, self.b._gradient(p @ self.X, q @ self.X), None
+
+    def measure(self, e, axis, g, base, alpha):
+        """(k,) current volumes from the e-gradient g (V is homogeneous of degree one along e)."""
+        if axis is None:
+            return self._split((e @ self.X) * g)
+        if alpha is None:
+            self.ensure(axis)
+            return self._split(self.X[axis] * g)
+        return base + alpha @ self.D[:, axis]
+
+    def volume_met(self):
+        return np.abs(self.volumes - self.targets) <= self.met_rel * self.vol_scale
+
+    def alpha_rows(self, g):
+        """(k, N) volume coefficients (S B)^T g, one row per volume row (island)."""
+        b = self.b
+        if not self.islands:
+            return b._transpose(g)[None]
+        N = b.lattice.n_points
+        keys = (b.block_island[:, None, None] * N + b.idx).ravel()
+        A = b._block_transpose(g)
+        return np.bincount(keys, A.ravel(), len(self.targets) * N).reshape(-1, N)
+
+    def step(self, e, divisor, preserve_volume):
+        """One closed-form correction along unit direction e; the volume rows ask for 1/divisor of
+        what remains. Updates D (and X) and the measured volumes; returns the volumes before."""
+        b = self.b
+        axis, g, base = self.gradient(e)
+        alpha = self.alpha_rows(g) if preserve_volume else None
+        before = self.volumes = self.measure(e, axis, g, base, alpha)
+        rows, rhs = [], []
+        if preserve_volume:
+            # A row is degenerate when its coefficients are negligible next to the total volume
+            # flux sum |s_v g_v| along e (e.g. a pure translation, or every point immobile).
+            flux = self._split(np.abs(g * b.slot_influence))
+            weighted = alpha if self.mob is None else alpha * np.sqrt(self.mob)
+            movable = np.linalg.norm(weighted, axis=1) > self.degenerate * flux
+            for r in np.flatnonzero(movable):
+                self.used[r] = True
+                rows.append(alpha[r])
+                rhs.append((self.targets[r] - before[r]) / divisor)
+        if self.pin_rows is not None:
+            x_pin = self.pin_rows @ self.D + b.x0[:, self.pin_slots].T
+            rows.extend(self.pin_rows)
+            rhs.extend((self.pin_targets - x_pin) @ e)
+        if not rows:
+            return before
+        C = np.array(rows)
+        r = np.array(rhs)
+        CM = C if self.mob is None else C * self.mob
+        lam = np.linalg.lstsq(CM @ C.T, r, rcond=tol.GRAM_RCOND)[0]
+        t = CM.T @ lam
+        n_pins = len(self.pin_slots)
+        if n_pins:
+            missed = np.abs((C @ t - r)[len(r) - n_pins:]) > self.met_rel * b.lattice.size
+            self.unmet_pins.update(self.pin_index[missed].tolist())
+        if axis is not None:
+            self.D[:, axis] += t
+            self.fresh[axis] = False
+        else:
+            self.X += (e[:, None] * b._forward(t)).astype(self.X.dtype)
+            self.D += t[:, None] * e
+        self.volumes = self.measure(e, axis, g, base, alpha)
+        return before
+
+
+def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
+          mobility=None, pins=(), islands=False):
+    """Volume-preserving FFD of `binding` for control points `points` (N, 3).
+
+    axes: correction directions as a string of distinct letters from "XYZ" (lattice axes), applied
+        in that order; or directions: (m, 3) rows (normalised here), e.g. world axes in lattice space.
+    volume_scale: target volume as a multiple of the rest volume (per island with islands=True).
+    preserve_volume: False turns off the volume rows (plain direct manipulation with pins).
+    mobility: (N,) in [0, 1], how freely each control point may move (0 keeps it fixed; Remark 2).
+    pins: (vertex index, (x, y, z) target) pairs; each pinned vertex lands on its target along the
+        correction directions (Problem 2, eq. 21, any number of pins).
+    islands: keep the volume of each connected component separately.
+    Returns a `Solution`. Raises ValueError for bad input, or when the volume must change but cannot
+    along any direction; never returns NaN.
+    """
+    t0 = time.perf_counter()
+    b = binding
+    b._displacements(points)  # validates shape and finiteness
+    dirs = parse_directions(axes, directions)
+    scale = float(volume_scale)
+    if not np.isfinite(scale) or scale < 0:
+        raise ValueError(f"volume_scale must be finite and >= 0, got {volume_scale!r}")
+    mob = _check_mobility(mobility, b.lattice.n_points)
+    pin_slots, pin_targets, pin_index = _check_pins(pins, b)
+    if len(dirs) == 0 and (preserve_volume or len(pin_slots)):
+        raise ValueError("no correction directions: give axes (e.g. 'XYZ') or directions")
+
+    targets = scale * (b.rest_island_volumes if islands else np.array([b.rest_volume]))
+    st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets)
+
+    m = len(dirs)
+    if m:
+        plain = None
+        for d, e in enumerate(dirs):
+            before = st.step(e, m - d, preserve_volume)
+            plain = before if plain is None else plain
+    else:
+        e = np.eye(3)[0]
+        plain = st.volumes = st.measure(e, *st.gradient(e), None)
+    warnings = []
+    if preserve_volume and m and not st.volume_met().all():
+        # Directions skipped as degenerate left their share: finish along the usable ones.
+        for e in dirs:
+            st.step(e, 1, preserve_volume)
+            if st.volume_met().all():
+                break
+        unmet = ~st.volume_met()
+        if unmet.any():
+            if not st.used.any():
+                raise ValueError("the volume cannot change along any of the correction directions "
+                                 "(no lattice influence, all mobility 0, or a lattice with one point per axis)")
+            what = "the volume" if not islands else f"the volume of islands {np.flatnonzero(unmet).tolist()}"
+            warnings.append(f"{what} could not reach the target along the given directions")
+    if st.unmet_pins:
+        warnings.append(f"pins on vertices {sorted(st.unmet_pins)} could not reach their targets "
+                        "(conflicting pins, immobile control points or missing directions)")
+    st.ensure(0, 1, 2)
+    points_out = b.lattice.rest_points + st.D
+    if not (np.isfinite(st.X).all() and np.isfinite(points_out).all()):
+        raise ValueError("the correction overflowed: coordinates or displacements are too large")
+
+    total = float(st.volumes.sum())
+    return Solution(
+        verts=b._to_verts(st.X), points=points_out, volume=total, target_volume=float(targets.sum()),
+        plain_volume=float(plain.sum()), directions=dirs,
+        island_volumes=st.volumes.copy() if islands else None,
+        island_target_volumes=targets if islands else None,
+        warnings=tuple(warnings), seconds=time.perf_counter() - t0)

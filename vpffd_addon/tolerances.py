@@ -1,0 +1,16 @@
+"""Shared numerical tolerances (relative unless stated otherwise)."""
+
+#: A correction direction is unusable when the norm of its volume coefficients is below this
+#: fraction of the total absolute volume flux along it (float64 bindings).
+DEGENERATE_REL_F64 = 1e-9
+#: The same for float32 bindings, whose gradients carry ~1e-7 rounding per term.
+DEGENERATE_REL_F32 = 1e-6
+
+#: Relative cut-off for the small (k x k) constraint systems: singular values below this
+#: fraction of the largest are treated as zero (least-squares / minimum-norm answer).
+GRAM_RCOND = 1e-12
+
+#: A constraint counts as met when its residual is below this fraction of its scale
+#: (volume rows: the target volume; pin rows: the lattice size).
+MET_REL_F64 = 1e-9
+MET_REL_F32 = 1e-5

@@ -2,7 +2,7 @@
 
 Run from the repository root:
 
-    .venv/bin/python -m benchmarks.benchmark [--sizes 6,7,8] [--repeat 7] [--out FILE.json] [--no-blender]
+    ./dev bench [--sizes 6,7,8] [--repeat 7] [--out FILE.json] [--no-blender] [--update-readme]
 
 Icospheres of subdivision 6, 7, 8 (40,962 / 163,842 / 655,362 vertices, radius 0.45) inside a
 10x10x10 B-spline lattice spanning [-0.5, 0.5]^3, deformed deterministically (squash along Z, twist
@@ -10,7 +10,8 @@ about Z, small seeded noise). For float32 and float64 bindings it times bind (on
 solve(axes="XYZ") (median and min over --repeat; max(3, repeat // 2) for sizes >= 8), and in the same
 process Blender's own Lattice modifier on the same mesh and lattice (``modifier.execution_time``).
 Progress goes to stderr, the JSON report to stdout (and to --out). This is a benchmark, not a test:
-it prints figures and ratios and exits 0 whether or not the targets are met.
+it prints figures and ratios and exits 0 whether or not the targets are met. --update-readme
+rewrites the table between the benchmark markers of README.md from this run's figures.
 """
 import argparse
 import datetime
@@ -280,6 +281,51 @@ def environment(use_blender):
     return env
 
 
+README_START = "<!-- benchmark:start (written by ./dev bench --update-readme) -->"
+README_END = "<!-- benchmark:end -->"
+
+
+def markdown(report):
+    """README table of a report: one row per mesh size."""
+    env = report["environment"]
+    lines = [README_START, "",
+             f"Measured {env['date'][:10]} on {env['cpu_count']} CPU cores, Python {env['python']}, "
+             f"NumPy {env['numpy']}, Blender (bpy) {env['bpy'] or 'not run'}; "
+             "10x10x10 B-spline lattice, squash + twist; medians.", "",
+             "| vertices | Blender's Lattice modifier | deform f32 | XYZ solve f32 | solve / Blender (f32) "
+             "| XYZ solve f64 | solve / Blender (f64) | bytes per vertex f32 / f64 | bind f32 |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in report["results"]:
+        f32, f64 = r["dtypes"]["float32"], r["dtypes"]["float64"]
+        bl = r.get("blender")
+        ratio = r.get("ratios_vs_blender")
+        blender = f"{bl['execution_time_ms_median']:.1f} ms" if bl else "-"
+        r32 = f"{ratio['float32']['solve_xyz']:.2f}x" if ratio else "-"
+        r64 = f"{ratio['float64']['solve_xyz']:.2f}x" if ratio else "-"
+        lines.append(
+            f"| {r['n_verts']:,} | {blender} | {f32['deform_ms_median']:.1f} ms | "
+            f"{f32['solve_xyz_ms_median']:.1f} ms | {r32} | {f64['solve_xyz_ms_median']:.1f} ms | {r64} | "
+            f"{f32['bytes_per_vertex']:.0f} / {f64['bytes_per_vertex']:.0f} | {f32['bind_ms']:.0f} ms |")
+    lin = report["summary"]["linearity"]
+    if "fitted_exponent" in lin["float32"]["solve_xyz"]:
+        lines += ["", f"Solve time grows as V^{lin['float32']['solve_xyz']['fitted_exponent']:.2f} (float32) and "
+                  f"V^{lin['float64']['solve_xyz']['fitted_exponent']:.2f} (float64) over these sizes "
+                  "(1.00 = linear)."]
+    lines += ["", README_END]
+    return "\n".join(lines)
+
+
+def update_readme(report, path=os.path.join(_ROOT, "README.md")):
+    with open(path) as fh:
+        text = fh.read()
+    start, end = text.find(README_START), text.find(README_END)
+    if start < 0 or end < start:
+        raise SystemExit(f"{path}: benchmark markers not found")
+    with open(path, "w") as fh:
+        fh.write(text[:start] + markdown(report) + text[end + len(README_END):])
+    log(f"updated the benchmark table in {path}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="6,7,8",
@@ -287,6 +333,7 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=7, help="timed runs per figure (sizes >= 8: max(3, repeat//2))")
     ap.add_argument("--out", help="also write the JSON report to this file")
     ap.add_argument("--no-blender", action="store_true", help="skip Blender's Lattice modifier (no bpy needed)")
+    ap.add_argument("--update-readme", action="store_true", help="rewrite README.md's benchmark table")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     if not sizes or args.repeat < 1:
@@ -319,6 +366,8 @@ def main(argv=None):
     if args.out:
         with open(args.out, "w") as fh:
             fh.write(text + "\n")
+    if args.update_readme:
+        update_readme(report)
     log(f"done in {report['total_seconds']:.1f} s")
     return 0
 

@@ -32,10 +32,13 @@ class Binding:
         X = self.x0 + np.stack([self._forward(D[:, c]) for c in range(3)])
         return self._to_verts(X)
 
-    def solve(self, points, **options):
-        """Volume-preserving FFD; see `vpffd_addon.solve.solve` for the options. Returns a Solution."""
+    def solve(self, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
+              mobility=None, pins=(), islands=False):
+        """Volume-preserving FFD for control points `points` (N, 3): a `Solution`.
+        The options are documented at `vpffd_addon.solve.solve`."""
         from .solve import solve
-        return solve(self, points, **options)
+        return solve(self, points, axes=axes, directions=directions, volume_scale=volume_scale,
+                     preserve_volume=preserve_volume, mobility=mobility, pins=pins, islands=islands)
 
     @property
     def influence(self):
@@ -45,7 +48,7 @@ class Binding:
     @property
     def island_labels(self):
         """(V,) connected component of each vertex, numbered 0..n_islands-1 by lowest vertex."""
-        return self.block_island[self.slot // self.ww.shape[1]]
+        return self.block_island[self.slot // self.block_size]
 
     @property
     def nbytes(self):
@@ -57,43 +60,51 @@ class Binding:
 
     def _forward(self, d):
         """(S B d) at every slot for a scalar field d (N,) on the control points: (n_slots,)."""
-        d = np.asarray(d, dtype=self.dtype)
-        out = np.empty(self.ww.shape[:2], self.dtype)
+        # Contract the (v x u) weights first: the intermediate is then Kw values per vertex.
+        D = np.asarray(d, dtype=self.dtype)[self.run_idx]
+        out = np.empty((self.ww.shape[0], self.block_size), self.dtype)
 
         def part(bl):
-            T = np.matmul(self.ww[bl], d[self.idx[bl]])
-            np.einsum("bsk,bsk->bs", T, self.wuv[bl], out=out[bl])
+            T = np.matmul(D[self.block_run[bl]], self.wuv[bl])
+            np.einsum("bks,bks->bs", T, self.ww[bl], out=out[bl])
         parallel.run(part, self.block_parts)
         return out.reshape(-1)
 
-    def _block_transpose(self, g):
-        """Per-block pieces of (S B)^T g for g (n_slots,): (n_blocks, Kw, Kv*Ku), to scatter with idx."""
-        g = np.asarray(g, dtype=self.dtype).reshape(self.ww.shape[:2] + (1,))
-        out = np.empty(self.idx.shape, self.dtype)
+    def _run_transpose(self, g):
+        """Per-run pieces of (S B)^T g for g (n_slots,): (n_runs, Kw, Kv*Ku), to scatter with run_idx.
+        A run is the blocks of one (island, cell): they share control points, so they sum first."""
+        g = np.asarray(g, dtype=self.dtype).reshape(-1, 1, self.block_size)
+        out = np.empty((self.ww.shape[0],) + self.run_idx.shape[1:], self.dtype)
 
         def part(bl):
-            np.matmul((self.ww[bl] * g[bl]).transpose(0, 2, 1), self.wuv[bl], out=out[bl])
+            np.matmul(self.ww[bl] * g[bl], self.wuv[bl].transpose(0, 2, 1), out=out[bl])
         parallel.run(part, self.block_parts)
-        return out
+        return np.add.reduceat(out, self.run_first_block, axis=0)
 
     def _transpose(self, g):
         """(S B)^T g for g (n_slots,): (N,) float64."""
-        return np.bincount(self.idx.ravel(), self._block_transpose(g).ravel(), self.lattice.n_points)
+        return np.bincount(self.run_idx.ravel(), self._run_transpose(g).ravel(), self.lattice.n_points)
 
-    def _gradient(self, p, q):
-        """Volume gradient along e at every slot from the coordinates p, q (n_slots,) on the frame
-        vectors completing e (see `volume.gradient_component`): (n_slots,) float64."""
+    def _gather(self, x):
+        """Coordinates x (n_slots,) at the face corners, one (3, F_part) array per face part."""
+        return parallel.run(lambda c: np.take(x, c), self.corner_parts)
+
+    def _gradient(self, P, Q):
+        """Volume gradient along e at every slot from gathered corner coordinates P, Q (`_gather` of
+        the coordinates on the frame vectors completing e; see `volume.gradient_component`):
+        (n_slots,) float64."""
         n = self.x0.shape[1]
-        parts = parallel.run(lambda c: gradient_component(p, q, c, n), self.corner_parts)
-        return parts[0] if len(parts) == 1 else np.add(*parts) if len(parts) == 2 else np.sum(parts, 0)
+        parts = parallel.run(lambda k: gradient_component(P[k], Q[k], self.corner_parts[k], n),
+                             list(range(len(P))))
+        return parts[0] if len(parts) == 1 else np.sum(parts, 0)
 
     def _rows(self, slots):
         """Rows of S B for the given vertex slots (k,): dense (k, N) float64."""
-        nb, bs, _ = self.ww.shape
-        blk, pos = np.divmod(np.asarray(slots, dtype=np.int64), bs)
-        w = (self.ww[blk, pos][:, :, None] * self.wuv[blk, pos][:, None, :]).reshape(len(blk), -1)
+        blk, pos = np.divmod(np.asarray(slots, dtype=np.int64), self.block_size)
+        w = (self.ww[blk, :, pos][:, :, None] * self.wuv[blk, :, pos][:, None, :]).reshape(len(blk), -1)
         N = self.lattice.n_points
-        keys = (np.arange(len(blk))[:, None] * N + self.idx[blk].reshape(len(blk), -1)).ravel()
+        idx = self.run_idx[self.block_run[blk]].reshape(len(blk), -1)
+        keys = (np.arange(len(blk))[:, None] * N + idx).ravel()
         return np.bincount(keys, w.ravel().astype(np.float64), len(blk) * N).reshape(len(blk), N)
 
     def _displacements(self, points):
@@ -111,9 +122,11 @@ class Binding:
     def _to_verts(self, X):
         """Slot-ordered coordinates (3, n_slots) relative to the centre -> (V, 3) float64 in lattice space."""
         out = np.empty((self.n_verts, 3))
-        for c in range(3):
-            out[:, c] = np.take(X[c], self.slot)
-        out += self.centre
+
+        def part(vs):
+            for c in range(3):
+                np.add(np.take(X[c], self.slot[vs]), self.centre[c], out=out[vs, c])
+        parallel.run(part, self.vertex_parts)
         return out
 
 
@@ -180,17 +193,22 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
     ww[slot] = taps[2][1] * s[:, None]
     b.slot_influence = np.zeros(n_slots, dtype)
     b.slot_influence[slot] = s
-    b.wuv = wuv.reshape(n_blocks, bs, Kv * Ku)
-    b.ww = ww.reshape(n_blocks, bs, Kw)
+    # Stored per block as (K, block) so that products run along contiguous vertex rows.
+    b.block_size = bs
+    b.wuv = np.ascontiguousarray(wuv.reshape(n_blocks, bs, Kv * Ku).transpose(0, 2, 1))
+    b.ww = np.ascontiguousarray(ww.reshape(n_blocks, bs, Kw).transpose(0, 2, 1))
 
-    # Control points of each block, from the first vertex of its run.
-    block_vertex = order[run_start[np.repeat(np.arange(len(run_len)), blocks_per_run)]]
-    grid = [np.clip(taps[a][0][block_vertex, None] + np.arange(K), 0, lattice.shape[a] - 1)
+    # Control points of each run (blocks of a run share them), from the run's first vertex.
+    run_vertex = order[run_start]
+    grid = [np.clip(taps[a][0][run_vertex, None] + np.arange(K), 0, lattice.shape[a] - 1)
             for a, K in enumerate((Ku, Kv, Kw))]
     nu, nv, _ = lattice.shape
-    b.idx = ((grid[2][:, :, None, None] * nv + grid[1][:, None, :, None]) * nu
-             + grid[0][:, None, None, :]).reshape(n_blocks, Kw, Kv * Ku)
-    b.block_island = labels[block_vertex]
+    b.run_idx = ((grid[2][:, :, None, None] * nv + grid[1][:, None, :, None]) * nu
+                 + grid[0][:, None, None, :]).reshape(len(run_len), Kw, Kv * Ku)
+    b.block_run = np.repeat(np.arange(len(run_len)), blocks_per_run)
+    b.run_first_block = first_block
+    b.run_island = labels[run_vertex]
+    b.block_island = b.run_island[b.block_run]
 
     x0 = np.zeros((3, n_slots), dtype)
     x0[:, slot] = rel.T
@@ -200,6 +218,7 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
     corners = corners[np.argsort(corners.min(1), kind="stable")]
     b.corner_parts = [np.ascontiguousarray(corners[fs].T) for fs in parallel.split(len(corners), V)]
     b.block_parts = parallel.split(n_blocks, V)
+    b.vertex_parts = parallel.split(V, V)
 
     face_island = labels[tris[:, 0]]
     pv = rel[tris]

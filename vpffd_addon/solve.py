@@ -115,12 +115,13 @@ class _State:
         self.D = np.array(points, dtype=np.float64) - b.lattice.rest_points
         self.X = b.x0.copy()
         self.fresh = [False, False, False]
+        self.corners = {}                           # component -> X[c] at the face corners
         self.mob = mobility
         self.pin_slots, self.pin_targets, self.pin_index = pins
         self.pin_rows = b._rows(self.pin_slots) if len(self.pin_slots) else None
         self.islands = islands
         self.targets = targets                      # (k,) volume targets (k = 1 or islands)
-        self.slot_island = np.repeat(b.block_island, b.ww.shape[1]) if islands else None
+        self.slot_island = np.repeat(b.block_island, b.block_size) if islands else None
         self.volumes = None                         # (k,) current volumes, known after a gradient
         self.used = np.zeros(len(targets), bool)    # volume rows that could move at least once
         self.unmet_pins = set()
@@ -137,6 +138,13 @@ class _State:
             if not self.fresh[c]:
                 self.X[c] = self.b.x0[c] + self.b._forward(self.D[:, c])
                 self.fresh[c] = True
+                self.corners.pop(c, None)
+
+    def corner_coords(self, c):
+        """Component c of X gathered at the face corners; reused until c changes."""
+        if c not in self.corners:
+            self.corners[c] = self.b._gather(self.X[c])
+        return self.corners[c]
 
     def _split(self, values):
         """Sum per-slot values (n_slots,) per volume row: (k,)."""
@@ -151,10 +159,10 @@ class _State:
         if axis is not None:
             a1, a2 = (axis + 1) % 3, (axis + 2) % 3
             self.ensure(a1, a2)
-            g = self.b._gradient(self.X[a1], self.X[a2])
+            g = self.b._gradient(self.corner_coords(a1), self.corner_coords(a2))
             return axis, g, self._split(self.b.x0[axis] * g)
         self.ensure(0, 1, 2)
-        return None, self.b._gradient(p @ self.X, q @ self.X), None
+        return None, self.b._gradient(self.b._gather(p @ self.X), self.b._gather(q @ self.X)), None
 
     def measure(self, e, axis, g, base, alpha):
         """(k,) current volumes from the e-gradient g (V is homogeneous of degree one along e)."""
@@ -174,8 +182,8 @@ class _State:
         if not self.islands:
             return b._transpose(g)[None]
         N = b.lattice.n_points
-        keys = (b.block_island[:, None, None] * N + b.idx).ravel()
-        A = b._block_transpose(g)
+        keys = (b.run_island[:, None, None] * N + b.run_idx).ravel()
+        A = b._run_transpose(g)
         return np.bincount(keys, A.ravel(), len(self.targets) * N).reshape(-1, N)
 
     def step(self, e, divisor, preserve_volume):
@@ -217,6 +225,7 @@ class _State:
         else:
             self.X += (e[:, None] * b._forward(t)).astype(self.X.dtype)
             self.D += t[:, None] * e
+            self.corners.clear()
         self.volumes = self.measure(e, axis, g, base, alpha)
         return before
 

@@ -19,25 +19,22 @@ def signed_volume(verts, tris, origin=None):
     return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
 
 
-def gradient_component(p, q, corners, n_slots):
+def gradient_component(P, Q, corners, n_slots):
     """Volume gradient along a direction e, at every vertex slot, from the other two coordinates.
 
-    p, q: (n_slots,) coordinates of the vertices on unit vectors p, q that complete e to a right-handed
-    orthonormal frame (e, p, q), measured from the volume's origin.
+    P, Q: (3, F) coordinates of the face corners on unit vectors p, q that complete e to a
+    right-handed orthonormal frame (e, p, q), measured from the volume's origin (P = p[corners]).
     corners: (3, F) vertex slots of the faces (row k = corner k of every face).
     Returns (n_slots,) float64 ``dV/d(x.e) = 1/6 sum_{faces (v, m, n)} (p_m q_n - q_m p_n)``, which does
     not depend on the e-coordinates, so ``V = sum_v (x_v . e) * g_v`` (V is homogeneous of degree one
     in them).
     """
-    P = np.take(p, corners)
-    Q = np.take(q, corners)
     c = np.empty(P.shape, dtype=P.dtype)
-    np.multiply(P[1], Q[2], out=c[0])
-    c[0] -= Q[1] * P[2]
-    np.multiply(P[2], Q[0], out=c[1])
-    c[1] -= Q[2] * P[0]
-    np.multiply(P[0], Q[1], out=c[2])
-    c[2] -= Q[0] * P[1]
+    tmp = np.empty(P.shape[1], dtype=P.dtype)
+    for k, (m, n) in enumerate(((1, 2), (2, 0), (0, 1))):
+        np.multiply(P[m], Q[n], out=c[k])
+        np.multiply(Q[m], P[n], out=tmp)
+        c[k] -= tmp
     # bincount sums in float64 whatever the input precision.
     g = np.bincount(corners.ravel(), c.ravel(), n_slots)
     g *= 1.0 / 6.0

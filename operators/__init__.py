@@ -1,10 +1,24 @@
-"""Blender-facing code of the extension (operators, properties, panels, handlers, mesh I/O).
+"""Blender-facing code of the extension: settings, operators, panel, handlers, mesh I/O.
 
-The core it drives is `vpffd_addon`; the bind/unbind/apply operators, the panel and the frame
-handlers are the next milestone, so for now the extension registers no classes.
+The numerical work is done by `vpffd_addon`; this package reads Blender data into flat arrays,
+calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifier applies.
 """
 import bpy
 
-classes = ()
+from . import handlers, ops, panel, properties
 
-register, unregister = bpy.utils.register_classes_factory(classes)
+classes = properties.classes + ops.classes + panel.classes
+
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
+
+
+def register():
+    _register_classes()
+    properties.register()
+    handlers.register()
+
+
+def unregister():
+    handlers.unregister()
+    properties.unregister()
+    _unregister_classes()

@@ -50,33 +50,37 @@ def _rel(a, b):
     return abs(a - b) / abs(b)
 
 
-def _check_solution(b, tris, P, sol, target):
+def _check_solution(b, tris, P, sol, target, vscale=None):
+    """The checks every successful solve must pass. Volumes are compared to `vscale` (default
+    |target|; islands of opposite orientation pass the sum of their magnitudes)."""
     lat = b.lattice
+    vscale = abs(target) if vscale is None else vscale
     assert np.isfinite(sol.verts).all() and np.isfinite(sol.points).all()
-    assert _rel(sol.volume, target) <= VOL_REL
-    assert _rel(sol.target_volume, target) <= 1e-12
-    assert _rel(vp.signed_volume(sol.verts, tris), target) <= VOL_REL
-    assert _rel(M.face_volume(sol.verts, tris, origin=lat.centre), target) <= VOL_REL
+    assert abs(sol.volume - target) <= VOL_REL * vscale
+    assert abs(sol.target_volume - target) <= 1e-12 * vscale
+    assert abs(vp.signed_volume(sol.verts, tris) - target) <= VOL_REL * vscale
+    assert abs(M.face_volume(sol.verts, tris, origin=lat.centre) - target) <= VOL_REL * vscale
     np.testing.assert_allclose(b.deform(sol.points), sol.verts, rtol=0, atol=1e-12 * lat.size)
     plain = vp.signed_volume(b.deform(P), tris)
-    assert abs(sol.plain_volume - plain) <= VOL_REL * max(abs(plain), abs(b.rest_volume))
+    assert abs(sol.plain_volume - plain) <= VOL_REL * max(abs(plain), abs(b.rest_volume), vscale)
 
 
 # ---------------------------------------------------------------- volume reaches its target
 
-@_settings(70)
+@_settings(400)
 @given(seed=SEEDS, n_parts=st.integers(1, 3), inward=st.booleans(),
-       mode=st.sampled_from(["axes", "rotation", "signed"]))
-def test_solve_reaches_target_volume(seed, n_parts, inward, mode):
+       mode=st.sampled_from(["axes", "rotation", "signed"]), with_influence=st.booleans())
+def test_solve_reaches_target_volume(seed, n_parts, inward, mode, with_influence):
     rng = np.random.default_rng(seed)
     verts, tris, _ = M.closed_mesh(rng, n_parts, inward)
     lat = M.random_lattice(rng, verts)
     P = M.random_points(rng, lat)
     axes, dirs, E = _axes_or_directions(rng, mode)
     scale = float(rng.uniform(0.5, 1.5))
+    s = rng.uniform(0.3, 1.0, len(verts)) if with_influence else None
     note(f"{lat}, axes={axes!r}, directions={dirs}, volume_scale={scale}")
 
-    b = vp.bind(lat, verts, tris)
+    b = vp.bind(lat, verts, tris, influence=s)
     assert b.is_closed
     rest = vp.signed_volume(verts, tris)
     assert (rest < 0) == inward
@@ -89,7 +93,7 @@ def test_solve_reaches_target_volume(seed, n_parts, inward, mode):
         assert not _clearly_solvable(lat, E), f"solvable case raised: {exc}"
         assert "volume" in str(exc)
         return
-    if lat.shape == (1, 1, 1):
+    if lat.shape == (1, 1, 1) and s is None:
         pytest.fail("a one-point lattice only translates: the volume cannot reach a new target")
     if _clearly_solvable(lat, E):
         assert sol.warnings == ()
@@ -99,7 +103,7 @@ def test_solve_reaches_target_volume(seed, n_parts, inward, mode):
     np.testing.assert_allclose(sol.directions, E, atol=1e-15)
 
 
-@_settings(25)
+@_settings(50)
 @given(seed=SEEDS)
 def test_one_point_lattice_cannot_change_volume(seed):
     """A 1x1x1 lattice only translates: a new target volume is a ValueError, the old one is kept."""
@@ -117,7 +121,7 @@ def test_one_point_lattice_cannot_change_volume(seed):
 
 # ---------------------------------------------------------------- mobility
 
-@_settings(40)
+@_settings(200)
 @given(seed=SEEDS, mode=st.sampled_from(["axes", "rotation"]))
 def test_immobile_points_never_move(seed, mode):
     rng = np.random.default_rng(seed)
@@ -147,7 +151,7 @@ def test_immobile_points_never_move(seed, mode):
         assert not (moved & frozen).any()
 
 
-@_settings(25)
+@_settings(100)
 @given(seed=SEEDS)
 def test_uniform_mobility_scale_does_not_change_solution(seed):
     """min sum t_i^2 / m_i is invariant under m -> c m: mobility 0.3 everywhere == no mobility."""
@@ -175,7 +179,7 @@ def _pin_case(rng, n_pins):
     return verts, tris, lat, P, pins_at
 
 
-@_settings(40)
+@_settings(250)
 @given(seed=SEEDS, n_pins=st.integers(1, 3))
 def test_pins_land_and_volume_holds(seed, n_pins):
     rng = np.random.default_rng(seed)
@@ -191,7 +195,7 @@ def test_pins_land_and_volume_holds(seed, n_pins):
     _check_solution(b, tris, P, sol, scale * b.rest_volume)
 
 
-@_settings(40)
+@_settings(200)
 @given(seed=SEEDS, n_pins=st.integers(1, 2), mode=st.sampled_from(["rotation", "signed"]))
 def test_pins_land_along_any_orthonormal_directions(seed, n_pins, mode):
     """Three orthonormal correction directions span space: every pin must land, whatever their
@@ -226,7 +230,7 @@ def test_pin_with_negative_axis_direction_minimal():
 
 # ---------------------------------------------------------------- islands and orientation
 
-@_settings(40)
+@_settings(200)
 @given(seed=SEEDS, n_parts=st.integers(2, 3), flip=st.lists(st.booleans(), min_size=3, max_size=3))
 def test_each_island_reaches_its_target(seed, n_parts, flip):
     rng = np.random.default_rng(seed)
@@ -256,10 +260,10 @@ def test_each_island_reaches_its_target(seed, n_parts, flip):
     order = [int(lab[part == k][0]) for k in range(n_parts)]
     np.testing.assert_allclose(np.asarray(sol.island_target_volumes)[order], scale * rest, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(sol.island_volumes)[order], scale * rest, rtol=VOL_REL)
-    _check_solution(b, tris, P, sol, scale * rest.sum())
+    _check_solution(b, tris, P, sol, scale * rest.sum(), vscale=scale * np.abs(rest).sum())
 
 
-@_settings(30)
+@_settings(150)
 @given(seed=SEEDS, mode=st.sampled_from(["axes", "rotation"]))
 def test_inward_normals_give_the_same_correction(seed, mode):
     """Flipping every face negates volume, target and gradient alike: the same control points."""
@@ -308,7 +312,7 @@ def _ffd(lat, X, P, influence=None):
     return vp.bind(lat, X, np.array([[0, 1, 2]]), influence=influence).deform(P)
 
 
-@_settings(40)
+@_settings(200)
 @given(seed=SEEDS)
 def test_jacobian_matches_finite_differences(seed):
     rng = np.random.default_rng(seed)
@@ -337,7 +341,7 @@ def test_jacobian_matches_finite_differences(seed):
     np.testing.assert_allclose(vp.jacobian_det(b, lat.rest_points), 1.0, rtol=0, atol=1e-14)
 
 
-@_settings(20)
+@_settings(60)
 @given(seed=SEEDS)
 def test_jacobian_of_affine_lattice_map_is_constant(seed):
     """Bezier and trilinear bases reproduce affine maps inside the box: det J = det A there."""
@@ -358,7 +362,7 @@ def test_jacobian_of_affine_lattice_map_is_constant(seed):
 
 # ---------------------------------------------------------------- float32 bindings
 
-@_settings(30)
+@_settings(150)
 @given(seed=SEEDS, mode=st.sampled_from(["axes", "rotation"]))
 def test_float32_binding_reaches_target(seed, mode):
     rng = np.random.default_rng(seed)

@@ -112,7 +112,9 @@ class _State:
 
     def __init__(self, b, points, mobility, pins, islands, targets):
         self.b = b
-        self.D = np.array(points, dtype=np.float64) - b.lattice.rest_points
+        # P is updated alongside D so that points with zero offset come back bit-identical.
+        self.P = np.array(points, dtype=np.float64)
+        self.D = self.P - b.lattice.rest_points
         self.X = b.x0.copy()
         self.fresh = [False, False, False]
         self.corners = {}                           # component -> X[c] at the face corners
@@ -191,6 +193,8 @@ class _State:
         what remains. Updates D (and X) and the measured volumes; returns the volumes before."""
         b = self.b
         axis, g, base = self.gradient(e)
+        if axis is not None:
+            e = np.eye(3)[axis]  # -X corrects exactly as +X: t absorbs the sign
         alpha = self.alpha_rows(g) if preserve_volume else None
         before = self.volumes = self.measure(e, axis, g, base, alpha)
         rows, rhs = [], []
@@ -221,10 +225,12 @@ class _State:
             self.unmet_pins.update(self.pin_index[missed].tolist())
         if axis is not None:
             self.D[:, axis] += t
+            self.P[:, axis] += t
             self.fresh[axis] = False
         else:
             self.X += (e[:, None] * b._forward(t)).astype(self.X.dtype)
             self.D += t[:, None] * e
+            self.P += t[:, None] * e
             self.corners.clear()
         self.volumes = self.measure(e, axis, g, base, alpha)
         return before
@@ -287,13 +293,12 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         warnings.append(f"pins on vertices {sorted(st.unmet_pins)} could not reach their targets "
                         "(conflicting pins, immobile control points or missing directions)")
     st.ensure(0, 1, 2)
-    points_out = b.lattice.rest_points + st.D
-    if not (np.isfinite(st.X).all() and np.isfinite(points_out).all()):
+    if not (np.isfinite(st.X).all() and np.isfinite(st.P).all()):
         raise ValueError("the correction overflowed: coordinates or displacements are too large")
 
     total = float(st.volumes.sum())
     return Solution(
-        verts=b._to_verts(st.X), points=points_out, volume=total, target_volume=float(targets.sum()),
+        verts=b._to_verts(st.X), points=st.P, volume=total, target_volume=float(targets.sum()),
         plain_volume=float(plain.sum()), directions=dirs,
         island_volumes=st.volumes.copy() if islands else None,
         island_target_volumes=targets if islands else None,

@@ -1,0 +1,364 @@
+"""Runtime of bound objects: bind, per-frame solve, offsets written for the VP-FFD modifier.
+
+Everything a bound object needs survives in the .blend: the settings (`obj.vpffd`), the mesh's own
+coordinates (never written), the per-vertex weights and pins (mesh attributes written at bind), the
+VP-FFD modifier. The NumPy binding is a cache rebuilt on demand, e.g. after loading a file, or when
+the mesh moves relative to the lattice (as Blender's Lattice modifier re-embeds every evaluation).
+"""
+import time
+
+import bpy
+import numpy as np
+
+from .. import vpffd_addon as vp
+from . import meshio, modifier
+
+WEIGHT_ATTRIBUTE = "vpffd_weight"   # vertex-group weight at bind time (1 without a group)
+PIN_ATTRIBUTE = "vpffd_pin"         # 1 for pinned vertices
+FOLD_CHECK_MAX_VERTS = 20000        # above this, folds are counted on request only (Check Folds)
+
+_cache = {}   # object session_uid -> _Bound
+_stats = {}   # object session_uid -> dict shown by the panel
+
+
+class BindError(ValueError):
+    """A problem the user must fix before binding (the message says what)."""
+
+
+def stats(obj):
+    return _stats.get(obj.session_uid, {})
+
+
+def _set_stats(obj, **values):
+    _stats[obj.session_uid] = values
+    return values
+
+
+def forget(obj=None):
+    """Drop cached bindings (all, or one object's)."""
+    if obj is None:
+        _cache.clear()
+        _stats.clear()
+    else:
+        _cache.pop(obj.session_uid, None)
+        _stats.pop(obj.session_uid, None)
+
+
+def _float_attribute(mesh, name, values=None):
+    """Write (V,) float point attribute `name`, or read it (None when missing)."""
+    attr = mesh.attributes.get(name)
+    if values is None:
+        if attr is None or attr.data_type != "FLOAT" or len(attr.data) != len(mesh.vertices):
+            return None
+        out = np.empty(len(mesh.vertices), np.float32)
+        attr.data.foreach_get("value", out)
+        return out.astype(np.float64)
+    if attr is not None:
+        mesh.attributes.remove(attr)
+    attr = mesh.attributes.new(name, "FLOAT", "POINT")
+    attr.data.foreach_set("value", np.asarray(values, np.float32))
+    return attr
+
+
+def _lattice_model(lattice_data):
+    """(vp.Lattice, rest grid (N, 3)) for a Blender Lattice datablock; bounds come from `co`."""
+    grid = meshio.lattice_points(lattice_data, "co")
+    shape = (lattice_data.points_u, lattice_data.points_v, lattice_data.points_w)
+    interp = (lattice_data.interpolation_type_u, lattice_data.interpolation_type_v,
+              lattice_data.interpolation_type_w)
+    return vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0))), grid
+
+
+class _Bound:
+    """Cached per-object state: rest mesh, weights, pins and the NumPy binding."""
+
+    def __init__(self, obj):
+        mesh = obj.data
+        self.rest = meshio.mesh_coords(mesh)
+        self.tris = meshio.mesh_triangles(mesh)
+        weight = _float_attribute(mesh, WEIGHT_ATTRIBUTE)
+        self.weight = np.ones(len(self.rest)) if weight is None else weight
+        pins = _float_attribute(mesh, PIN_ATTRIBUTE)
+        self.pins = np.zeros(0, np.int64) if pins is None else np.flatnonzero(pins > 0)
+        self.binding = None
+        self.key = None
+        self.signature = None
+
+    def binding_for(self, lattice, grid, L, influence):
+        """The binding for this lattice, mesh-to-lattice matrix and influence (rebuilt on change)."""
+        key = (lattice.shape, lattice.interpolation, grid.tobytes(), L.round(12).tobytes(),
+               influence.tobytes())
+        if key != self.key:
+            verts = meshio.transform(self.rest, L)
+            self.binding = vp.bind(lattice, verts, self.tris, influence=influence, dtype=np.float32)
+            self.key, self.L = key, L
+        return self.binding
+
+
+def _influence(obj, state):
+    s = obj.vpffd
+    w = state.weight
+    return 1.0 - w if (s.invert_vertex_group and s.vertex_group) else w
+
+
+def _directions(obj, lat_matrix):
+    """(axes string, directions (m, 3) or None) in lattice space for the settings."""
+    s = obj.vpffd
+    if s.axes == "NONE":
+        return "", None
+    if s.space == "LATTICE":
+        return s.axes, None
+    # A world displacement e is inv(M3) e in lattice space (not unit length under scale: the
+    # solver normalises; the volume is exact along any direction).
+    inv3 = np.linalg.inv(lat_matrix[:3, :3])
+    world = np.eye(3)[["XYZ".index(c) for c in s.axes]]
+    return "", world @ inv3.T
+
+
+def _pin_targets(obj, state, lat_matrix):
+    """[(vertex, target in lattice space)] for the pinned vertices, following the pin Empty."""
+    s = obj.vpffd
+    if s.pin_mode == "NONE" or len(state.pins) == 0:
+        return []
+    if s.pin_target is None:
+        raise ValueError("pins need a target Empty (Pin Target)")
+    M_t = meshio.matrix(s.pin_target.matrix_world)
+    M_t0 = np.array(s.pin_target_rest).reshape(4, 4)
+    M_mesh0 = np.array(s.pin_mesh_rest).reshape(4, 4)
+    carry = np.linalg.inv(lat_matrix) @ M_t @ np.linalg.inv(M_t0) @ M_mesh0
+    targets = meshio.transform(state.rest[state.pins], carry)
+    return list(zip(state.pins.tolist(), targets))
+
+
+def _mobility(obj):
+    s = obj.vpffd
+    if not s.mobility_group:
+        return None
+    return meshio.lattice_group_weights(s.lattice, s.mobility_group)
+
+
+def _zero_offsets(obj):
+    mesh = obj.data
+    if mesh.attributes.get(meshio.OFFSET_ATTRIBUTE) is not None:
+        meshio.write_offsets(mesh, np.zeros((len(mesh.vertices), 3)))
+
+
+def update(obj, depsgraph, force=False):
+    """Solve the current frame for a bound object and write its offsets. Never raises: problems
+    go to the panel (`stats(obj)['error']`) and the console. Returns True when offsets were written."""
+    s = obj.vpffd
+    uid = obj.session_uid
+    try:
+        if not s.is_bound:
+            return False
+        if modifier.find(obj) is None:
+            _set_stats(obj, error="the VP-FFD modifier was removed: Bind again, or Unbind")
+            return False
+        if obj.mode == "EDIT":
+            _set_stats(obj, **{**stats(obj), "error": "paused while the mesh is in Edit Mode"})
+            return False
+        mesh = obj.data
+        if meshio.topology_signature(mesh) != tuple(s.bound_topology):
+            _zero_offsets(obj)
+            _cache.pop(uid, None)
+            _set_stats(obj, error="the mesh's topology changed since binding: Re-bind")
+            return False
+        lat_ob = s.lattice
+        if lat_ob is None or lat_ob.type != "LATTICE":
+            _zero_offsets(obj)
+            _set_stats(obj, error="the lattice is missing: pick a Lattice object, or Unbind")
+            return False
+
+        lat_eval = lat_ob.evaluated_get(depsgraph)
+        ob_eval = obj.evaluated_get(depsgraph)
+        lattice, grid = _lattice_model(lat_eval.data)
+        points = meshio.lattice_points(lat_eval.data, "co_deform")
+        M_lat = meshio.matrix(lat_eval.matrix_world)
+        L = np.linalg.inv(M_lat) @ meshio.matrix(ob_eval.matrix_world)
+        axes, directions = _directions(obj, M_lat)
+        state = _cache.get(uid)
+        if state is None:
+            state = _cache[uid] = _Bound(obj)
+        influence = _influence(obj, state)
+        pins = _pin_targets(obj, state, M_lat)
+        mobility = _mobility(obj)
+        signature = (points.tobytes(), L.tobytes(), grid.tobytes(), axes, s.space, s.strength,
+                     s.volume_scale, s.use_islands, s.invert_vertex_group, repr(pins),
+                     None if mobility is None else mobility.tobytes())
+        if not force and signature == state.signature:
+            return False
+
+        t0 = time.perf_counter()
+        binding = state.binding_for(lattice, grid, L, influence)
+        # Strength scales every displacement alike, so it scales the lattice offsets instead of
+        # the binding's weights (no re-bind when it is animated).
+        P = grid + s.strength * (points - grid)
+        if axes or directions is not None or pins:
+            sol = binding.solve(P, axes=axes, directions=directions, volume_scale=s.volume_scale,
+                                preserve_volume=bool(axes or directions is not None),
+                                mobility=mobility, pins=pins, islands=s.use_islands)
+            verts, volume, plain, warnings = sol.verts, sol.volume, sol.plain_volume, list(sol.warnings)
+            used_points = sol.points
+        else:
+            verts = binding.deform(P)
+            volume = plain = None
+            warnings = []
+            used_points = P
+        offsets = meshio.transform(verts, np.linalg.inv(L)) - state.rest
+        if not np.isfinite(offsets).all():
+            raise ValueError("the solve produced non-finite offsets; nothing was written")
+        meshio.write_offsets(mesh, offsets)
+        seconds = time.perf_counter() - t0
+        state.signature, state.points = signature, used_points
+
+        rest_volume = binding.rest_volume
+        info = dict(error=None, seconds=seconds, warnings=warnings, rest_volume=rest_volume,
+                    closed=binding.is_closed, n_verts=binding.n_verts, folds=None)
+        if volume is None:  # no correction: measure what the plain deformation does
+            volume = plain = vp.signed_volume(verts, state.tris, origin=lattice.centre)
+        if rest_volume:
+            info["volume_percent"] = 100.0 * volume / rest_volume
+            info["plain_percent"] = 100.0 * plain / rest_volume
+        if binding.n_verts <= FOLD_CHECK_MAX_VERTS:
+            info["folds"] = count_folds(binding, used_points)
+        _set_stats(obj, **info)
+        return True
+    except Exception as exc:  # a handler must never raise into Blender
+        _set_stats(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
+        print(f"VP-FFD: {obj.name}: {exc}")
+        return False
+
+
+def check_folds(obj, depsgraph):
+    """Solve the current frame and count folds whatever the mesh size; None on error."""
+    if not update(obj, depsgraph, force=True) and stats(obj).get("error"):
+        return None
+    state = _cache[obj.session_uid]
+    info = stats(obj)
+    info["folds"] = count_folds(state.binding, state.points)
+    return info["folds"]
+
+
+def count_folds(binding, points):
+    """Vertices where the deformation's Jacobian determinant is <= 0 (the lattice folds there)."""
+    return int((vp.jacobian_det(binding, points) <= 0).sum())
+
+
+def bound_objects(scene):
+    return [ob for ob in scene.objects if ob.type == "MESH" and ob.vpffd.is_bound]
+
+
+def update_scene(scene, depsgraph):
+    for ob in bound_objects(scene):
+        update(ob, depsgraph)
+
+
+def request_update(obj):
+    """Settings changed: have the next depsgraph update recompute this object."""
+    if getattr(obj, "type", None) == "MESH" and obj.vpffd.is_bound:
+        obj.update_tag()
+
+
+# ---------------------------------------------------------------------------------------- bind
+
+def check_bindable(obj):
+    """Raise BindError naming what stops `obj` from being bound."""
+    if obj is None or obj.type != "MESH":
+        raise BindError("select a mesh object to bind")
+    if obj.mode == "EDIT":
+        raise BindError("leave Edit Mode before binding")
+    s = obj.vpffd
+    if s.lattice is None or s.lattice.type != "LATTICE":
+        raise BindError("pick a Lattice object first")
+    if obj.data.users > 1:
+        raise BindError(f"mesh '{obj.data.name}' is shared by {obj.data.users} objects (linked "
+                        "duplicates); make it single user (Object > Relations > Make Single User)")
+    if len(obj.data.polygons) == 0:
+        raise BindError(f"mesh '{obj.data.name}' has no faces: there is no volume to keep")
+
+
+def bind(obj, depsgraph):
+    """Bind `obj` to its lattice (settings in obj.vpffd). Returns warnings (list of str)."""
+    check_bindable(obj)
+    s = obj.vpffd
+    mesh = obj.data
+    weight = (meshio.vertex_group_weights(obj, s.vertex_group) if s.vertex_group
+              else np.ones(len(mesh.vertices)))
+    _float_attribute(mesh, WEIGHT_ATTRIBUTE, weight)
+    pins = np.zeros(len(mesh.vertices))
+    if s.pin_mode == "VERTEX":
+        if s.pin_vertex >= len(mesh.vertices):
+            raise BindError(f"pin vertex {s.pin_vertex} does not exist (the mesh has {len(mesh.vertices)})")
+        pins[s.pin_vertex] = 1.0
+    elif s.pin_mode == "GROUP":
+        if not s.pin_vertex_group:
+            raise BindError("choose the vertex group to pin")
+        pins = (meshio.vertex_group_weights(obj, s.pin_vertex_group) > 0).astype(float)
+    if s.pin_mode != "NONE":
+        if s.pin_target is None:
+            raise BindError("pins need a target Empty (Pin Target)")
+        s.pin_target_rest = np.asarray(s.pin_target.matrix_world, dtype=float).ravel().tolist()
+        s.pin_mesh_rest = np.asarray(obj.matrix_world, dtype=float).ravel().tolist()
+    _float_attribute(mesh, PIN_ATTRIBUTE, pins)
+
+    s.bound_topology = meshio.topology_signature(mesh)
+    s.is_bound = True
+    modifier.ensure(obj)
+    forget(obj)
+    state = _cache[obj.session_uid] = _Bound(obj)
+    depsgraph.update()
+    update(obj, depsgraph, force=True)
+    info = stats(obj)
+    if info.get("error"):
+        unbind(obj)
+        raise BindError(info["error"])
+
+    warnings = []
+    b = state.binding
+    if not b.is_closed:
+        warnings.append("the mesh is not closed: the volume of an open surface is measured about "
+                        "the lattice centre")
+    inside = _inside_count(state, b.lattice)
+    if inside < b.n_verts:
+        warnings.append(f"{b.n_verts - inside} of {b.n_verts} vertices lie outside the lattice "
+                        "(they follow its boundary, as with the Lattice modifier)")
+    if 1 in b.lattice.shape:
+        warnings.append("the lattice has a single point on an axis: it only moves along that axis")
+    if info.get("folds"):
+        warnings.append(f"the lattice folds space: {info['folds']} vertices inverted")
+    return warnings
+
+
+def _inside_count(state, lattice):
+    v = meshio.transform(state.rest, state.L)
+    eps = 1e-6 * lattice.size
+    return int(((v >= lattice.lo - eps) & (v <= lattice.hi + eps)).all(1).sum())
+
+
+def unbind(obj):
+    """Remove the VP-FFD modifier and attributes; the mesh's coordinates were never changed."""
+    mesh = obj.data
+    modifier.remove(obj)
+    meshio.remove_offsets(mesh)
+    for name in (WEIGHT_ATTRIBUTE, PIN_ATTRIBUTE):
+        attr = mesh.attributes.get(name)
+        if attr is not None:
+            mesh.attributes.remove(attr)
+    obj.vpffd.is_bound = False
+    forget(obj)
+    mesh.update_tag()
+
+
+def apply(obj, depsgraph):
+    """Make the current deformed shape the mesh's own coordinates, then unbind."""
+    mesh = obj.data
+    if mesh.shape_keys is not None:
+        raise BindError("the mesh has shape keys: applying would only change the basis shape")
+    update(obj, depsgraph, force=True)
+    info = stats(obj)
+    if info.get("error"):
+        raise BindError(info["error"])
+    co = meshio.mesh_coords(mesh) + meshio.read_offsets(mesh)
+    unbind(obj)
+    mesh.vertices.foreach_set("co", co.astype(np.float32).ravel())
+    mesh.update()

@@ -1,0 +1,70 @@
+"""Application handlers, managed in one place. All are @persistent (they survive file loads) and
+none lets an exception reach Blender: `engine.update` records problems for the panel instead."""
+import bpy
+from bpy.app.handlers import persistent
+
+from . import engine
+
+_updating = False  # our own writes trigger depsgraph updates: do not recurse into them
+
+
+def _guarded(scene, depsgraph):
+    global _updating
+    if _updating or depsgraph is None:
+        return
+    _updating = True
+    try:
+        engine.update_scene(scene, depsgraph)
+    except Exception as exc:  # never raise into Blender
+        print(f"VP-FFD: update failed: {exc}")
+    finally:
+        _updating = False
+
+
+@persistent
+def on_frame_change(scene, depsgraph=None):
+    """Every frame (viewport, playback, F12 and command-line renders, which pass their depsgraph)."""
+    _guarded(scene, depsgraph)
+
+
+@persistent
+def on_depsgraph_update(scene, depsgraph=None):
+    """Live edits: lattice points, shape keys, transforms, settings. Objects whose inputs did not
+    change are skipped by their input signature, so our own attribute writes end the loop."""
+    _guarded(scene, depsgraph)
+
+
+@persistent
+def on_load(*_args):
+    """A loaded file brings bound objects but no cached bindings: drop stale ones, lock the
+    interface during renders (handlers change data), and solve the current frame."""
+    engine.forget()
+    try:
+        for scene in bpy.data.scenes:
+            if engine.bound_objects(scene):
+                scene.render.use_lock_interface = True
+        context = bpy.context
+        if context.scene is not None:
+            _guarded(context.scene, context.evaluated_depsgraph_get())
+    except Exception as exc:
+        print(f"VP-FFD: after loading: {exc}")
+
+
+_HANDLERS = (
+    (bpy.app.handlers.frame_change_post, on_frame_change),
+    (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update),
+    (bpy.app.handlers.load_post, on_load),
+)
+
+
+def register():
+    for handlers, fn in _HANDLERS:
+        if fn not in handlers:
+            handlers.append(fn)
+
+
+def unregister():
+    for handlers, fn in _HANDLERS:
+        while fn in handlers:
+            handlers.remove(fn)
+    engine.forget()

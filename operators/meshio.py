@@ -1,0 +1,136 @@
+"""Reading and writing Blender data as flat NumPy arrays (foreach_get/foreach_set, float32 buffers)."""
+import bpy
+import numpy as np
+
+OFFSET_ATTRIBUTE = "vpffd_offset"
+_WEIGHT_ATTRIBUTE = "vpffd_weight_probe"
+
+
+def mesh_coords(mesh):
+    """(V, 3) float64 vertex positions of a Mesh datablock (its own, undeformed coordinates)."""
+    buf = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", buf)
+    return buf.reshape(-1, 3).astype(np.float64)
+
+
+def mesh_triangles(mesh):
+    """(F, 3) int64 vertex indices of the mesh's triangulated faces."""
+    mesh.calc_loop_triangles()
+    buf = np.empty(len(mesh.loop_triangles) * 3, np.int32)
+    mesh.loop_triangles.foreach_get("vertices", buf)
+    return buf.reshape(-1, 3).astype(np.int64)
+
+
+def topology_signature(mesh):
+    """Cheap fingerprint of a mesh's topology: (vertices, edges, faces, corners)."""
+    return (len(mesh.vertices), len(mesh.edges), len(mesh.polygons), len(mesh.loops))
+
+
+def lattice_points(lattice_data, attr="co_deform"):
+    """(N, 3) float64 lattice point positions (`co` rest grid or `co_deform`), Blender's order."""
+    buf = np.empty(len(lattice_data.points) * 3, np.float32)
+    lattice_data.points.foreach_get(attr, buf)
+    return buf.reshape(-1, 3).astype(np.float64)
+
+
+def lattice_group_weights(lattice_object, group_name):
+    """(N,) weights of a lattice vertex group (unassigned points 0). N is the lattice size, small."""
+    group = lattice_object.vertex_groups.get(group_name)
+    if group is None:
+        raise ValueError(f"lattice '{lattice_object.name}' has no vertex group '{group_name}'")
+    w = np.zeros(len(lattice_object.data.points))
+    for i, point in enumerate(lattice_object.data.points):
+        for g in point.groups:
+            if g.group == group.index:
+                w[i] = g.weight
+    return w
+
+
+def _weight_probe_group(group_name):
+    """A throw-away node group storing vertex group `group_name` as a float point attribute."""
+    ng = bpy.data.node_groups.new(".vpffd weight probe", "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    gin, gout = ng.nodes.new("NodeGroupInput"), ng.nodes.new("NodeGroupOutput")
+    read = ng.nodes.new("GeometryNodeInputNamedAttribute")
+    read.data_type = "FLOAT"
+    read.inputs["Name"].default_value = group_name
+    store = ng.nodes.new("GeometryNodeStoreNamedAttribute")
+    store.data_type = "FLOAT"
+    store.domain = "POINT"
+    store.inputs["Name"].default_value = _WEIGHT_ATTRIBUTE
+    ng.links.new(gin.outputs[0], store.inputs["Geometry"])
+    ng.links.new(read.outputs["Attribute"], store.inputs["Value"])
+    ng.links.new(store.outputs[0], gout.inputs[0])
+    return ng
+
+
+def vertex_group_weights(obj, group_name):
+    """(V,) weights of a mesh vertex group (unassigned vertices 0), read without a Python loop.
+
+    Vertex groups have no flat array API, but Geometry Nodes see them as named attributes: a
+    temporary modifier stores the group as a float attribute; every other modifier is switched off
+    meanwhile so the evaluated mesh keeps the original vertices.
+    """
+    if obj.vertex_groups.get(group_name) is None:
+        raise ValueError(f"'{obj.name}' has no vertex group '{group_name}'")
+    mesh = obj.data
+    saved = [(m, m.show_viewport) for m in obj.modifiers]
+    ng = _weight_probe_group(group_name)
+    probe = obj.modifiers.new(".vpffd weight probe", "NODES")
+    try:
+        probe.node_group = ng
+        for m, _ in saved:
+            m.show_viewport = False
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        depsgraph.update()
+        evaluated = obj.evaluated_get(depsgraph).data
+        attr = evaluated.attributes.get(_WEIGHT_ATTRIBUTE)
+        if attr is None or len(evaluated.vertices) != len(mesh.vertices):
+            raise RuntimeError(f"could not read vertex group '{group_name}' of '{obj.name}'")
+        w = np.empty(len(mesh.vertices), np.float32)
+        attr.data.foreach_get("value", w)
+    finally:
+        obj.modifiers.remove(probe)
+        bpy.data.node_groups.remove(ng)
+        for m, shown in saved:
+            m.show_viewport = shown
+    return w.astype(np.float64)
+
+
+def write_offsets(mesh, offsets):
+    """Store (V, 3) offsets in the mesh's float-vector point attribute that the VP-FFD Geometry
+    Nodes modifier adds to the positions. The vertex coordinates themselves are never written."""
+    attr = mesh.attributes.get(OFFSET_ATTRIBUTE)
+    if attr is None or attr.data_type != "FLOAT_VECTOR" or attr.domain != "POINT":
+        if attr is not None:
+            mesh.attributes.remove(attr)
+        attr = mesh.attributes.new(OFFSET_ATTRIBUTE, "FLOAT_VECTOR", "POINT")
+    attr.data.foreach_set("vector", np.ascontiguousarray(offsets, dtype=np.float32).ravel())
+    mesh.update_tag()
+
+
+def read_offsets(mesh):
+    """(V, 3) float64 offsets currently stored on the mesh (zeros if none)."""
+    attr = mesh.attributes.get(OFFSET_ATTRIBUTE)
+    out = np.zeros(len(mesh.vertices) * 3, np.float32)
+    if attr is not None and attr.data_type == "FLOAT_VECTOR" and len(attr.data) == len(mesh.vertices):
+        attr.data.foreach_get("vector", out)
+    return out.reshape(-1, 3).astype(np.float64)
+
+
+def remove_offsets(mesh):
+    attr = mesh.attributes.get(OFFSET_ATTRIBUTE)
+    if attr is not None:
+        mesh.attributes.remove(attr)
+        mesh.update_tag()
+
+
+def matrix(m):
+    """A Blender 4x4 Matrix as a float64 (4, 4) array."""
+    return np.array(m, dtype=np.float64).reshape(4, 4)
+
+
+def transform(points, mat):
+    """Apply a (4, 4) affine matrix to (V, 3) points."""
+    return points @ mat[:3, :3].T + mat[:3, 3]

@@ -1,0 +1,87 @@
+"""Operators: bind, unbind, apply, check folds. Thin wrappers over `engine`."""
+import bpy
+
+from . import engine
+
+
+class _ObjectOperator:
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        ob = context.object
+        return ob is not None and ob.type == "MESH"
+
+
+class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
+    """Bind the mesh to its lattice with exact volume preservation (adds the VP-FFD modifier)"""
+    bl_idname = "object.vpffd_bind"
+    bl_label = "Bind"
+
+    def execute(self, context):
+        ob = context.object
+        try:
+            warnings = engine.bind(ob, context.evaluated_depsgraph_get())
+        except (engine.BindError, ValueError) as exc:
+            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            return {"CANCELLED"}
+        for text in warnings:
+            self.report({"WARNING"}, f"VP-FFD: {text}")
+        context.scene.render.use_lock_interface = True  # handlers write data during renders
+        return {"FINISHED"}
+
+
+class OBJECT_OT_vpffd_unbind(_ObjectOperator, bpy.types.Operator):
+    """Remove VP-FFD from the mesh; its own coordinates were never changed"""
+    bl_idname = "object.vpffd_unbind"
+    bl_label = "Unbind"
+
+    @classmethod
+    def poll(cls, context):
+        return super().poll(context) and context.object.vpffd.is_bound
+
+    def execute(self, context):
+        engine.unbind(context.object)
+        return {"FINISHED"}
+
+
+class OBJECT_OT_vpffd_apply(_ObjectOperator, bpy.types.Operator):
+    """Make the current volume-preserved shape the mesh's own, and unbind"""
+    bl_idname = "object.vpffd_apply"
+    bl_label = "Apply"
+
+    @classmethod
+    def poll(cls, context):
+        return super().poll(context) and context.object.vpffd.is_bound
+
+    def execute(self, context):
+        try:
+            engine.apply(context.object, context.evaluated_depsgraph_get())
+        except (engine.BindError, ValueError) as exc:
+            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class OBJECT_OT_vpffd_check_folds(_ObjectOperator, bpy.types.Operator):
+    """Count the vertices where the lattice folds space (Jacobian determinant <= 0)"""
+    bl_idname = "object.vpffd_check_folds"
+    bl_label = "Check Folds"
+    bl_options = {"REGISTER"}
+
+    @classmethod
+    def poll(cls, context):
+        return super().poll(context) and context.object.vpffd.is_bound
+
+    def execute(self, context):
+        ob = context.object
+        n = engine.check_folds(ob, context.evaluated_depsgraph_get())
+        if n is None:
+            self.report({"ERROR"}, f"VP-FFD: {engine.stats(ob).get('error')}")
+            return {"CANCELLED"}
+        self.report({"WARNING"} if n else {"INFO"}, f"VP-FFD: {n} inverted vertices")
+        return {"FINISHED"}
+
+
+classes = (OBJECT_OT_vpffd_bind, OBJECT_OT_vpffd_unbind, OBJECT_OT_vpffd_apply,
+           OBJECT_OT_vpffd_check_folds)

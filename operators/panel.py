@@ -1,0 +1,82 @@
+"""The VP-FFD panel, in the Modifier properties next to the modifier stack."""
+import bpy
+
+from . import engine, modifier
+
+
+class OBJECT_PT_vpffd(bpy.types.Panel):
+    bl_label = "Volume-Preserving Lattice (VP-FFD)"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "modifier"
+
+    @classmethod
+    def poll(cls, context):
+        return context.object is not None and context.object.type == "MESH"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        ob = context.object
+        s = ob.vpffd
+        bound = s.is_bound
+
+        col = layout.column()
+        col.prop(s, "lattice")
+        row = col.row(align=True)
+        row.prop_search(s, "vertex_group", ob, "vertex_groups", text="Vertex Group")
+        row.prop(s, "invert_vertex_group", text="", icon="ARROW_LEFTRIGHT")
+        col.prop(s, "strength", slider=True)
+
+        col = layout.column()
+        col.prop(s, "axes")
+        col.prop(s, "space")
+        col.prop(s, "volume_scale")
+        if s.lattice is not None:
+            col.prop_search(s, "mobility_group", s.lattice, "vertex_groups", text="Mobility Group")
+        else:
+            col.prop(s, "mobility_group")
+        col.prop(s, "use_islands")
+
+        col = layout.column()
+        col.prop(s, "pin_mode")
+        if s.pin_mode == "VERTEX":
+            col.prop(s, "pin_vertex")
+        elif s.pin_mode == "GROUP":
+            col.prop_search(s, "pin_vertex_group", ob, "vertex_groups", text="Pin Group")
+        if s.pin_mode != "NONE":
+            col.prop(s, "pin_target")
+
+        row = layout.row(align=True)
+        if bound:
+            row.operator("object.vpffd_bind", text="Re-bind", icon="FILE_REFRESH")
+            row.operator("object.vpffd_apply", icon="CHECKMARK")
+            row.operator("object.vpffd_unbind", icon="X")
+            if modifier.find(ob) is not None:
+                layout.prop(s, "enabled")
+        else:
+            row.operator("object.vpffd_bind", icon="MOD_LATTICE")
+        if bound:
+            self.draw_status(layout, ob)
+
+    @staticmethod
+    def draw_status(layout, ob):
+        info = engine.stats(ob)
+        box = layout.box()
+        if info.get("error"):
+            box.label(text=info["error"], icon="ERROR")
+        if "volume_percent" in info:
+            box.label(text=f"Volume {info['volume_percent']:.4f}% of rest "
+                           f"(plain lattice: {info['plain_percent']:.2f}%)")
+        if "seconds" in info:
+            box.label(text=f"Solve {1e3 * info['seconds']:.1f} ms, {info['n_verts']:,} vertices")
+        if info.get("closed") is False:
+            box.label(text="Open mesh: volume measured about the lattice centre", icon="INFO")
+        if info.get("folds"):
+            box.label(text=f"Lattice folds space: {info['folds']} inverted vertices", icon="ERROR")
+        for text in info.get("warnings", ()):
+            box.label(text=text, icon="ERROR")
+        box.operator("object.vpffd_check_folds", icon="VIEWZOOM")
+
+
+classes = (OBJECT_PT_vpffd,)

@@ -1,0 +1,115 @@
+"""Per-object settings of VP-FFD (`obj.vpffd`), saved with the .blend file."""
+import bpy
+from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty,
+                       IntProperty, IntVectorProperty, PointerProperty, StringProperty)
+
+from . import modifier
+
+AXES_ITEMS = [
+    ("XYZ", "XYZ", "Correct along all three axes"),
+    ("XY", "XY", "Correct along X and Y only (a squash spreads sideways; Z faces stay put)"),
+    ("XZ", "XZ", "Correct along X and Z only"),
+    ("YZ", "YZ", "Correct along Y and Z only"),
+    ("X", "X", "Correct along X only"),
+    ("Y", "Y", "Correct along Y only"),
+    ("Z", "Z", "Correct along Z only"),
+    ("NONE", "None", "No volume correction: exactly Blender's Lattice modifier"),
+]
+
+
+def _poll_lattice(self, obj):
+    return obj.type == "LATTICE"
+
+
+def _poll_empty(self, obj):
+    return obj.type == "EMPTY"
+
+
+def _get_enabled(self):
+    mod = modifier.find(self.id_data)
+    return bool(mod and mod.show_viewport)
+
+
+def _set_enabled(self, value):
+    mod = modifier.find(self.id_data)
+    if mod is not None:
+        mod.show_viewport = value
+        mod.show_render = value
+
+
+def _settings_changed(self, context):
+    from . import engine
+    engine.request_update(self.id_data)
+
+
+class VPFFD_Settings(bpy.types.PropertyGroup):
+    lattice: PointerProperty(
+        name="Lattice", type=bpy.types.Object, poll=_poll_lattice, update=_settings_changed,
+        description="Lattice object that deforms this mesh (as with a Lattice modifier)")
+    vertex_group: StringProperty(
+        name="Vertex Group", update=_settings_changed,
+        description="Vertex group that scales the deformation per vertex (read at bind time)")
+    invert_vertex_group: BoolProperty(
+        name="Invert", default=False, update=_settings_changed,
+        description="Invert the vertex group's influence")
+    strength: FloatProperty(
+        name="Strength", default=1.0, soft_min=0.0, soft_max=1.0, update=_settings_changed,
+        description="Strength of the deformation, as the Lattice modifier's")
+    axes: EnumProperty(
+        name="Correction", items=AXES_ITEMS, default="XYZ", update=_settings_changed,
+        description="Directions along which the lattice may be corrected to keep the volume")
+    space: EnumProperty(
+        name="Space", default="LATTICE", update=_settings_changed,
+        items=[("LATTICE", "Lattice", "The lattice object's own axes"),
+               ("WORLD", "World", "World axes")],
+        description="Space of the correction directions")
+    volume_scale: FloatProperty(
+        name="Volume Scale", default=1.0, min=0.0, soft_min=0.5, soft_max=2.0, update=_settings_changed,
+        description="Target volume as a multiple of the rest volume (animate it to breathe or inflate)")
+    mobility_group: StringProperty(
+        name="Mobility Group", update=_settings_changed,
+        description="Lattice vertex group: how freely each lattice point may move for the correction "
+                    "(1 free, 0 fixed; unassigned points stay fixed). Empty: all points free")
+    use_islands: BoolProperty(
+        name="Per-Island Volume", default=False, update=_settings_changed,
+        description="Keep the volume of every separate part of the mesh on its own")
+    pin_mode: EnumProperty(
+        name="Pins", default="NONE", update=_settings_changed,
+        items=[("NONE", "None", "No pinned vertices"),
+               ("VERTEX", "Vertex", "Pin one vertex (by index) to the target Empty"),
+               ("GROUP", "Vertex Group", "Pin every vertex of a vertex group to the target Empty")],
+        description="Vertices held on an Empty while the volume is corrected")
+    pin_vertex: IntProperty(
+        name="Pin Vertex", default=0, min=0, update=_settings_changed,
+        description="Index of the pinned vertex")
+    pin_vertex_group: StringProperty(
+        name="Pin Group", update=_settings_changed,
+        description="Vertex group whose vertices (weight > 0) are pinned")
+    pin_target: PointerProperty(
+        name="Pin Target", type=bpy.types.Object, poll=_poll_empty, update=_settings_changed,
+        description="Empty that carries the pinned vertices: they follow its motion since binding")
+    pin_target_rest: FloatVectorProperty(
+        name="Pin Target at Bind", size=16, default=(1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1),
+        options={"HIDDEN"}, description="World matrix of the pin target when the mesh was bound")
+    pin_mesh_rest: FloatVectorProperty(
+        name="Mesh at Bind", size=16, default=(1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1),
+        options={"HIDDEN"}, description="World matrix of the mesh when it was bound")
+    enabled: BoolProperty(
+        name="Enabled", get=_get_enabled, set=_set_enabled,
+        description="Show the VP-FFD modifier in viewport and render")
+    is_bound: BoolProperty(name="Bound", default=False, options={"HIDDEN"},
+                           description="Whether the mesh is bound to its lattice")
+    bound_topology: IntVectorProperty(
+        name="Bound Topology", size=4, options={"HIDDEN"},
+        description="Vertex, edge, face and corner counts at bind time")
+
+
+classes = (VPFFD_Settings,)
+
+
+def register():
+    bpy.types.Object.vpffd = PointerProperty(type=VPFFD_Settings)
+
+
+def unregister():
+    del bpy.types.Object.vpffd

@@ -145,10 +145,9 @@ def test_immobile_points_never_move(seed, mode):
     assert np.array_equal(sol.points[frozen], P[frozen])
     if not sol.warnings:
         _check_solution(b, tris, P, sol, scale * b.rest_volume)
-    if not frozen.all():
-        # The mobile points are the only ones that move, and they do move when the volume changes.
-        moved = np.abs(sol.points - P).max(1) > 0
-        assert not (moved & frozen).any()
+        # ...and the mobile points did the work.
+        if abs(sol.plain_volume - sol.target_volume) > 1e-6 * abs(sol.target_volume):
+            assert (sol.points[~frozen] != P[~frozen]).any()
 
 
 @_settings(100)

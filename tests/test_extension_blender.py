@@ -1,0 +1,434 @@
+"""The installed extension in a headless Blender session: bind, frames, settings, bad input, files.
+
+The extension is built into a zip and installed through Blender's own installer (conftest's
+`vpffd` fixture). Volumes are measured here, independently, from the float32 coordinates of the
+evaluated meshes; deformations are compared with real Lattice modifiers.
+"""
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
+
+try:
+    from . import extension_harness as eh
+except ImportError:
+    import extension_harness as eh
+
+VOLUME_TOL = 1e-5
+
+
+# ------------------------------------------------------------------------------------ helpers
+
+def _mesh_object(name, verts, tris, location=(0, 0, 0)):
+    me = bpy.data.meshes.new(name)
+    me.vertices.add(len(verts))
+    me.vertices.foreach_set("co", np.asarray(verts, np.float32).ravel())
+    me.loops.add(tris.size)
+    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
+    me.polygons.add(len(tris))
+    me.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
+    me.update(calc_edges=True)
+    ob = bpy.data.objects.new(name, me)
+    ob.location = location
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+def _sphere(name="Ball", subdivisions=3, radius=0.8, location=(0, 0, 0)):
+    v, f = core.icosphere(subdivisions, radius)
+    return _mesh_object(name, v, f, location)
+
+
+def _lattice(name="Lattice", shape=(4, 4, 4), interp="KEY_BSPLINE", scale=2.0 / 3.0, location=(0, 0, 0)):
+    lt = bpy.data.lattices.new(name)
+    lt.points_u, lt.points_v, lt.points_w = shape
+    for a in "uvw":
+        setattr(lt, f"interpolation_type_{a}", interp)
+    ob = bpy.data.objects.new(name, lt)
+    ob.scale = (scale,) * 3          # rest grid of a 4-point axis spans [-1.5, 1.5]
+    ob.location = location
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+def _points(lat_ob, attr="co"):
+    buf = np.empty(len(lat_ob.data.points) * 3, np.float32)
+    lat_ob.data.points.foreach_get(attr, buf)
+    return buf.reshape(-1, 3).astype(np.float64)
+
+
+def _animate_squash(lat_ob, amount=0.6, frames=(1, 15, 30)):
+    """Shape key squashing the lattice along its Z (towards z = 0): 0 -> amount -> 0."""
+    lat_ob.shape_key_add(name="Basis")
+    key = lat_ob.shape_key_add(name="Squash")
+    co = _points(lat_ob)
+    co[:, 2] *= 1.0 - amount
+    co[:, :2] *= 1.0 + 0.1 * amount   # a little sideways bulge as well
+    key.data.foreach_set("co", co.astype(np.float32).ravel())
+    for f, v in zip(frames, (0.0, 1.0, 0.0)):
+        key.value = v
+        key.keyframe_insert("value", frame=f)
+    return key
+
+
+def _evaluated(ob):
+    """(world coords (V,3) float64 from the float32 evaluated mesh, tris (F,3))."""
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = ob.evaluated_get(dg)
+    me = ev.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    me.calc_loop_triangles()
+    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
+    me.loop_triangles.foreach_get("vertices", tris)
+    M = np.array(ev.matrix_world, dtype=np.float64)
+    co = co.reshape(-1, 3).astype(np.float64)
+    return co @ M[:3, :3].T + M[:3, 3], tris.reshape(-1, 3)
+
+
+def _volume(ob):
+    """Volume of the evaluated mesh, independently: 1/6 sum a . (b x c) over its triangles."""
+    co, tris = _evaluated(ob)
+    a, b, c = co[tris[:, 0]], co[tris[:, 1]], co[tris[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def _mesh_co(ob):
+    buf = np.empty(len(ob.data.vertices) * 3, np.float32)
+    ob.data.vertices.foreach_get("co", buf)
+    return buf
+
+
+def _plain_copy(ob, lat_ob, name="Plain"):
+    """A copy with its own mesh and a real Lattice modifier."""
+    cp = ob.copy()
+    cp.data = ob.data.copy()
+    cp.name = name
+    for m in list(cp.modifiers):
+        cp.modifiers.remove(m)
+    for a in list(cp.data.attributes):
+        if a.name.startswith("vpffd"):
+            cp.data.attributes.remove(a)
+    bpy.context.scene.collection.objects.link(cp)
+    mod = cp.modifiers.new("Lattice", "LATTICE")
+    mod.object = lat_ob
+    return cp, mod
+
+
+def _bind(ob, **settings):
+    for k, v in settings.items():
+        setattr(ob.vpffd, k, v)
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        return bpy.ops.object.vpffd_bind()
+
+
+@pytest.fixture
+def ext(vpffd):
+    eh.reset_scene()
+    yield vpffd
+    eh.reset_scene()
+
+
+def _engine(ext):
+    return ext.module.operators.engine
+
+
+# -------------------------------------------------------------------------------------- tests
+
+def test_squash_keeps_volume_every_frame_while_the_lattice_modifier_loses_it(ext):
+    ball = _sphere(subdivisions=3)
+    lat = _lattice()
+    _animate_squash(lat, amount=0.6)
+    rest = _volume(ball)
+    assert _bind(ball, lattice=lat, axes="XY") == {"FINISHED"}
+    plain, _ = _plain_copy(ball, lat)
+    scene = bpy.context.scene
+    worst_plain = 1.0
+    for f in range(1, 31):
+        scene.frame_set(f)
+        v = _volume(ball)
+        assert abs(v / rest - 1.0) <= VOLUME_TOL, f"frame {f}: volume {v / rest:.8f} of rest"
+        worst_plain = min(worst_plain, _volume(plain) / rest)
+        info = _engine(ext).stats(ball)
+        assert info.get("error") is None
+        assert abs(info["volume_percent"] - 100.0) <= 100 * VOLUME_TOL
+    assert worst_plain <= 0.8, f"plain Lattice modifier kept {worst_plain:.1%}: the test squash is too weak"
+
+
+TRANSFORMS = {
+    "identity": (None, None),
+    "rotated_scaled": (((0.3, -0.2, 0.5), (1.2, 0.8, 1.1)), None),
+    "negative_scale": (((0.0, 0.0, 0.7), (-1.0, 1.1, 0.9)), ((0.1, 0.2, -0.3), (1.0, -1.0, 1.0))),
+    "parented": ("parent", "parent"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TRANSFORMS))
+def test_no_correction_equals_the_lattice_modifier(ext, case):
+    rng = np.random.default_rng(7)
+    ball = _sphere(subdivisions=2, radius=0.9)
+    lat = _lattice(interp="KEY_CATMULL_ROM")
+    lt_co = _points(lat)
+    moved = lt_co + rng.normal(0, 0.25, lt_co.shape)
+    lat.data.points.foreach_set("co_deform", moved.astype(np.float32).ravel())
+    weights = rng.uniform(0, 1, len(ball.data.vertices))
+    weights[rng.random(len(weights)) < 0.2] = 0.0
+    attr = ball.data.attributes.new("w", "FLOAT", "POINT")
+    attr.data.foreach_set("value", weights.astype(np.float32))
+    ball.data.attributes.active = attr
+    with bpy.context.temp_override(object=ball, active_object=ball):
+        assert bpy.ops.geometry.attribute_convert(mode="VERTEX_GROUP") == {"FINISHED"}
+    group = ball.vertex_groups[0].name
+    mesh_tf, lat_tf = TRANSFORMS[case]
+    for ob, tf in ((ball, mesh_tf), (lat, lat_tf)):
+        if tf == "parent":
+            parent = bpy.data.objects.new("Parent_" + ob.name, None)
+            bpy.context.scene.collection.objects.link(parent)
+            parent.location = (0.2, -0.1, 0.3)
+            parent.rotation_euler = (0.2, 0.4, -0.3)
+            parent.scale = (1.1, 0.9, 1.0)
+            ob.parent = parent
+        elif tf is not None:
+            ob.rotation_euler, ob.scale = tf
+    plain, mod = _plain_copy(ball, lat)
+    mod.vertex_group = group
+    mod.invert_vertex_group = True
+    mod.strength = 0.7
+    assert _bind(ball, lattice=lat, axes="NONE", vertex_group=group, invert_vertex_group=True,
+                 strength=0.7) == {"FINISHED"}
+    bpy.context.scene.frame_set(1)
+    ours, _ = _evaluated(ball)
+    theirs, _ = _evaluated(plain)
+    size = np.ptp(_evaluated(plain)[0], axis=0).max()
+    assert np.abs(ours - theirs).max() <= 1e-5 * size
+
+
+def test_unbind_restores_the_original_coordinates_bit_exactly(ext):
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat)
+    before = _mesh_co(ball).tobytes()
+    _bind(ball, lattice=lat)
+    bpy.context.scene.frame_set(15)
+    assert not np.array_equal(_evaluated(ball)[0], _evaluated(ball)[0] * 0)  # deformed
+    with bpy.context.temp_override(object=ball, active_object=ball):
+        assert bpy.ops.object.vpffd_unbind() == {"FINISHED"}
+    assert _mesh_co(ball).tobytes() == before
+    assert len(ball.modifiers) == 0
+    assert not [a.name for a in ball.data.attributes if a.name.startswith("vpffd")]
+    evaluated, _ = _evaluated(ball)
+    np.testing.assert_array_equal(evaluated.astype(np.float32).ravel(), np.frombuffer(before, np.float32))
+
+
+def test_apply_makes_the_current_shape_permanent(ext):
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat)
+    _bind(ball, lattice=lat, axes="XY")
+    bpy.context.scene.frame_set(15)
+    shape, _ = _evaluated(ball)
+    with bpy.context.temp_override(object=ball, active_object=ball):
+        assert bpy.ops.object.vpffd_apply() == {"FINISHED"}
+    assert len(ball.modifiers) == 0 and not ball.vpffd.is_bound
+    np.testing.assert_allclose(_mesh_co(ball).reshape(-1, 3), shape, atol=1e-6)
+
+
+def test_meshes_sharing_a_lattice_each_keep_their_volume(ext):
+    a = _sphere("A", radius=0.5, location=(-0.4, 0, 0))
+    b = _sphere("B", subdivisions=2, radius=0.35, location=(0.5, 0.2, 0))
+    lat = _lattice()
+    _animate_squash(lat, 0.5)
+    rest = {ob.name: _volume(ob) for ob in (a, b)}
+    for ob in (a, b):
+        assert _bind(ob, lattice=lat, axes="XYZ") == {"FINISHED"}
+    bpy.context.scene.frame_set(15)
+    for ob in (a, b):
+        assert abs(_volume(ob) / rest[ob.name] - 1) <= VOLUME_TOL
+
+
+def test_volume_scale_is_animatable_and_world_axes_work(ext):
+    ball = _sphere()
+    lat = _lattice()
+    lat.rotation_euler = (0.3, 0.5, 0.1)
+    _animate_squash(lat, 0.4)
+    rest = _volume(ball)
+    _bind(ball, lattice=lat, axes="XY", space="WORLD")
+    s = ball.vpffd
+    s.volume_scale = 1.0
+    s.keyframe_insert("volume_scale", frame=1)
+    s.volume_scale = 1.3
+    s.keyframe_insert("volume_scale", frame=30)
+    scene = bpy.context.scene
+    for f in (1, 10, 20, 30):
+        scene.frame_set(f)
+        target = s.volume_scale                      # the animated value at this frame
+        assert (f == 1 and target == 1.0) or target > 1.0
+        assert abs(_volume(ball) / rest - target) <= VOLUME_TOL * target
+    # World X/Y corrections move vertices only in world X and Y: compare with lattice-axes result.
+    world, _ = _evaluated(ball)
+    s.space = "LATTICE"
+    scene.frame_set(30)
+    lattice_axes, _ = _evaluated(ball)
+    assert np.abs(world - lattice_axes).max() > 1e-3
+
+
+def test_pinned_vertex_group_follows_its_empty(ext):
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat, 0.3)
+    co = _mesh_co(ball).reshape(-1, 3)
+    top = np.flatnonzero(co[:, 2] > 0.7)
+    group = ball.vertex_groups.new(name="Top")
+    group.add(top.tolist(), 1.0, "REPLACE")
+    empty = bpy.data.objects.new("Handle", None)
+    bpy.context.scene.collection.objects.link(empty)
+    rest = _volume(ball)
+    assert _bind(ball, lattice=lat, axes="XYZ", pin_mode="GROUP", pin_vertex_group="Top",
+                 pin_target=empty) == {"FINISHED"}
+    empty.location = (0.0, 0.0, 0.15)
+    bpy.context.scene.frame_set(15)
+    got, _ = _evaluated(ball)
+    want = co[top] + [0.0, 0.0, 0.15]
+    assert np.abs(got[top] - want).max() <= 1e-4
+    assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
+
+
+def test_islands_keep_their_own_volumes(ext):
+    v1, f1 = core.icosphere(2, 0.4, (-0.45, 0, 0))
+    v2, f2 = core.icosphere(2, 0.3, (0.5, 0, 0.1))
+    ob = _mesh_object("Pair", np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+    lat = _lattice()
+    co = _points(lat)
+    co[:, 2] *= np.where(co[:, 0] < 0, 0.5, 1.0)     # squash only the left half
+    lat.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
+    assert _bind(ob, lattice=lat, axes="XYZ", use_islands=True) == {"FINISHED"}
+    bpy.context.scene.frame_set(1)
+    got, tris = _evaluated(ob)
+    n = len(v1)
+    for sel, verts, faces in ((slice(0, n), v1, f1), (slice(n, None), v2, f2)):
+        rest = core.signed_volume(verts.astype(np.float32).astype(float), faces)
+        now = core.signed_volume(got[sel], faces)
+        assert abs(now / rest - 1) <= VOLUME_TOL
+
+
+def test_toggle_like_a_modifier(ext):
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat)
+    _bind(ball, lattice=lat)
+    bpy.context.scene.frame_set(15)
+    ball.vpffd.enabled = False
+    mod = ext.module.operators.modifier.find(ball)
+    assert not mod.show_viewport and not mod.show_render
+    evaluated, _ = _evaluated(ball)
+    np.testing.assert_array_equal(evaluated.astype(np.float32).ravel(), _mesh_co(ball))
+    ball.vpffd.enabled = True
+    assert not np.allclose(_evaluated(ball)[0].astype(np.float32).ravel(), _mesh_co(ball))
+
+
+def test_bad_input_is_reported_and_nothing_is_lost(ext):
+    eng = _engine(ext)
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat)
+    original = _mesh_co(ball).tobytes()
+    # Edit mode: binding is refused with a message.
+    with bpy.context.temp_override(object=ball, active_object=ball):
+        bpy.context.view_layer.objects.active = ball
+        bpy.ops.object.mode_set(mode="EDIT")
+        with pytest.raises(eng.BindError, match="Edit Mode"):
+            eng.check_bindable(ball)
+        bpy.ops.object.mode_set(mode="OBJECT")
+    # Linked duplicates share a mesh: refused.
+    twin = ball.copy()
+    bpy.context.scene.collection.objects.link(twin)
+    ball.vpffd.lattice = lat
+    with pytest.raises(eng.BindError, match="shared"):
+        eng.check_bindable(ball)
+    bpy.data.objects.remove(twin)
+    assert _bind(ball, lattice=lat) == {"FINISHED"}
+    # Lattice renamed: still works. Lattice deleted: no exception, an error, the plain mesh.
+    lat.name = "Renamed"
+    bpy.context.scene.frame_set(10)
+    assert eng.stats(ball).get("error") is None
+    bpy.data.objects.remove(lat)
+    bpy.context.scene.frame_set(11)
+    assert "lattice" in eng.stats(ball)["error"]
+    np.testing.assert_array_equal(_evaluated(ball)[0].astype(np.float32).ravel(), np.frombuffer(original, np.float32))
+    # Topology edited after binding: an error offering a re-bind, coordinates intact.
+    lat2 = _lattice("Lattice2")
+    ball.vpffd.lattice = lat2
+    ball.data.vertices.add(1)
+    bpy.context.scene.frame_set(12)
+    assert "Re-bind" in eng.stats(ball)["error"]
+    assert _mesh_co(ball)[:-3].tobytes() == original
+    assert _bind(ball) == {"FINISHED"}
+    assert eng.stats(ball).get("error") is None
+
+
+def test_open_mesh_single_point_axis_and_outside_vertices_warn(ext):
+    eng = _engine(ext)
+    v, f = core.box(2, 1.6)
+    ob = _mesh_object("OpenBox", v, f[2:])                     # two triangles removed: open
+    lat = _lattice(shape=(3, 1, 3), scale=0.5)                 # narrower than the box: outside
+    ob.vpffd.lattice = lat
+    warnings = eng.bind(ob, bpy.context.evaluated_depsgraph_get())
+    text = " ".join(warnings)
+    assert "not closed" in text and "outside the lattice" in text and "single point" in text
+    assert eng.stats(ob)["closed"] is False
+
+
+def test_folded_lattice_reports_inverted_vertices(ext):
+    eng = _engine(ext)
+    ball = _sphere(subdivisions=2)
+    lat = _lattice(shape=(2, 2, 2), interp="KEY_LINEAR", scale=2.0)
+    co = _points(lat)
+    co[:, 0] *= -1.0                                            # mirror: the map turns inside out
+    lat.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
+    ball.vpffd.lattice = lat
+    ball.vpffd.axes = "NONE"
+    warnings = eng.bind(ball, bpy.context.evaluated_depsgraph_get())
+    assert eng.stats(ball)["folds"] == len(ball.data.vertices)
+    assert any("inverted" in w for w in warnings)
+
+
+def test_saved_file_reopens_and_keeps_working(ext, tmp_path):
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat, 0.6)
+    rest = _volume(ball)
+    _bind(ball, lattice=lat, axes="XY")
+    path = str(tmp_path / "bound.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    ball = bpy.data.objects["Ball"]
+    assert ball.vpffd.is_bound
+    for f in (7, 15, 22):
+        bpy.context.scene.frame_set(f)
+        assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
+    assert bpy.context.scene.render.use_lock_interface
+
+
+def test_renders_run_the_solver_with_the_render_depsgraph(ext, tmp_path):
+    eng = _engine(ext)
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat, 0.6)
+    _bind(ball, lattice=lat, axes="XY")
+    scene = bpy.context.scene
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    scene.collection.objects.link(cam)
+    cam.location = (0, -5, 0)
+    cam.rotation_euler = (1.5708, 0, 0)
+    scene.camera = cam
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x = scene.render.resolution_y = 32
+    scene.render.filepath = str(tmp_path / "frame_")
+    scene.frame_start, scene.frame_end = 14, 16
+    bpy.ops.render.render(animation=True)
+    for f in (14, 15, 16):
+        assert (tmp_path / f"frame_{f:04d}.png").exists()
+    assert eng.stats(ball).get("error") is None
+    assert abs(eng.stats(ball)["volume_percent"] - 100) <= 100 * VOLUME_TOL

@@ -92,6 +92,23 @@ def test_zip_holds_only_extension_files(zip_names):
                        f"[build] paths_exclude_pattern in blender_manifest.toml: {extra}")
 
 
+def test_build_plan_matches_blenders_zip(zip_names):
+    """The harness's pre-build plan (Blender's matcher and walk) lists exactly what was zipped."""
+    assert sorted(n for n in zip_names if n != "blender_manifest.toml") == eh.planned_files(ROOT)
+
+
+def test_build_refuses_oversized_tree(tmp_path):
+    src = tmp_path / "ext"
+    (src / "junk").mkdir(parents=True)
+    shutil.copy(os.path.join(ROOT, "__init__.py"), src / "__init__.py")
+    text = open(os.path.join(ROOT, "blender_manifest.toml"), encoding="utf-8").read()
+    (src / "blender_manifest.toml").write_text(text)
+    (src / "junk" / "blob.bin").write_bytes(b"\0" * 4096)  # not excluded by the manifest
+    with pytest.raises(eh.ExtensionBuildError, match="PREFLIGHT"):
+        eh.build_extension_zip(str(src), str(tmp_path / "out"), max_bytes=2048)
+    assert not (tmp_path / "out").exists()
+
+
 # ------------------------------------------------------------------------------ validate
 
 def test_blender_validation_passes(built_zip):

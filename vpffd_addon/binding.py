@@ -119,13 +119,23 @@ class Binding:
                              f"(first: index {int(np.argmax(bad))})")
         return P - self.lattice.rest_points
 
+    def _origins(self, vertices):
+        """(k, 3) volume origins of the given vertices (their islands' origins)."""
+        if len(self.island_origin) == 1:
+            return np.broadcast_to(self.island_origin[0], (len(vertices), 3))
+        return self.island_origin[self.block_island[self.slot[vertices] // self.block_size]]
+
     def _to_verts(self, X):
-        """Slot-ordered coordinates (3, n_slots) relative to the centre -> (V, 3) float64 in lattice space."""
+        """Slot-ordered coordinates (3, n_slots), relative to the island origins -> (V, 3) float64
+        in lattice space."""
         out = np.empty((self.n_verts, 3))
+        single = len(self.island_origin) == 1
 
         def part(vs):
+            idx = self.slot[vs]
             for c in range(3):
-                np.add(np.take(X[c], self.slot[vs]), self.centre[c], out=out[vs, c])
+                out[vs, c] = np.take(X[c], idx)
+            out[vs] += self.island_origin[0] if single else self._origins(np.arange(vs.start, vs.stop))
         parallel.run(part, self.vertex_parts)
         return out
 
@@ -137,7 +147,8 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
     influence: (V,) per-vertex factor on the displacement (vertex-group weight * strength); default 1.
     dtype: float64 (exact to ~1e-15) or float32 (half the memory traffic; Blender stores float32).
     Returns a `Binding`. Open meshes are allowed (`is_closed` False); their volume is measured
-    about the lattice centre.
+    about the lattice centre. A closed mesh's islands are measured about their own bounding-box
+    centres (the same volume, without the rounding of coordinates far from the lattice).
     """
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice, got {type(lattice).__name__}")
@@ -158,14 +169,22 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
 
     b = Binding()
     b.lattice, b.dtype, b.n_verts, b.n_faces = lattice, dtype, V, len(tris)
-    b.centre = lattice.centre
     b.is_closed = is_closed(tris, V)
-    rel = verts - b.centre
 
     taps = [axis_taps(verts[:, a], lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a])
             for a in range(3)]
     labels, n_islands = connected_components(tris, V)
     b.n_islands = n_islands
+    # Internal coordinates are relative to a volume origin per island.
+    if b.is_closed:
+        lo = np.full((n_islands, 3), np.inf)
+        hi = np.full((n_islands, 3), -np.inf)
+        np.minimum.at(lo, labels, verts)
+        np.maximum.at(hi, labels, verts)
+        b.island_origin = 0.5 * (lo + hi)
+    else:
+        b.island_origin = lattice.centre[None].copy()
+    rel = verts - (b.island_origin[labels] if b.is_closed else b.island_origin[0])
 
     # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded).
     cells = [first + 1 for first, _ in taps]          # first >= -1

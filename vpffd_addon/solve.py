@@ -67,7 +67,7 @@ def _check_mobility(mobility, N):
 
 
 def _check_pins(pins, binding):
-    """(slots (k,), targets (k, 3) relative to the lattice centre, vertex indices (k,))."""
+    """(slots (k,), targets (k, 3) relative to their volume origins, vertex indices (k,))."""
     pins = list(pins) if pins is not None else []
     if not pins:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)
@@ -85,7 +85,7 @@ def _check_pins(pins, binding):
     if free.any():
         raise ValueError(f"pin on vertex {int(index[free][0])}, which the lattice does not influence "
                          "(its influence is 0)")
-    return binding.slot[index], target - binding.centre, index
+    return binding.slot[index], target - binding._origins(index), index
 
 
 def _frame(e):
@@ -105,7 +105,7 @@ class _State:
     """Per-solve working state.
 
     D (N, 3): current control-point displacements P - P0. X (3, n_slots): slot coordinates relative
-    to the lattice centre, a component refreshed (x0 + S B D) only when a gradient needs it: a step
+    to the volume origins, a component refreshed (x0 + S B D) only when a gradient needs it: a step
     along axis a changes only component a, and its volume before and after follows from
     ``V = x0_a . g + D_a . alpha`` (homogeneity), so no forward product is spent on it.
     """

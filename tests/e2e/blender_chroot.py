@@ -167,6 +167,7 @@ def build_extension(source_dir, workdir, timeout=300):
     src = os.path.join(workdir, "ext_src")
     names = _source_files(source_dir)
     copy_files({n: os.path.join(source_dir, n) for n in names}, src)
+    os.makedirs(os.path.join(workdir, "ext_build"), exist_ok=True)
     rc, out, err, _ = run_blender(
         ["--command", "extension", "build", "--source-dir", "{work}/ext_src",
          "--output-dir", "{work}/ext_build"], workdir=workdir, timeout=timeout)

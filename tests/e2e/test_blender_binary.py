@@ -74,14 +74,17 @@ if deformer == "lattice":
     mod = sphere.modifiers.new("Lattice", "LATTICE")
     mod.object = lattice
 elif deformer == "vpffd":
-    import addon_utils
-    assert any(m.__name__.endswith(".vpffd") for m in addon_utils.modules()), "VP-FFD not installed"
+    # The extension (installed by the test into this run's user resources) replaces the Lattice
+    # modifier: pick the lattice in the object's VP-FFD settings, then bind.
+    assert hasattr(sphere, "vpffd"), "the VP-FFD extension is not enabled"
+    sphere.vpffd.lattice = lattice
     for ob in scene.objects:
         ob.select_set(ob is sphere)
     bpy.context.view_layer.objects.active = sphere
-    mod = sphere.modifiers.new("Lattice", "LATTICE")   # VP-FFD binds to a Lattice modifier
-    mod.object = lattice
-    print("vpffd_bind:", bpy.ops.object.vpffd_bind())
+    with bpy.context.temp_override(object=sphere, active_object=sphere, selected_objects=[sphere]):
+        res = bpy.ops.object.vpffd_bind()
+    assert res == {"FINISHED"}, res
+    print("VPFFD_E2E_BOUND")
 else:
     raise SystemExit("unknown deformer " + deformer)
 
@@ -138,25 +141,36 @@ def measure(obj, depsgraph):
     return co, tris, vol
 
 
+DEPSGRAPH = {}
+
+
+def save(frame, key, depsgraph):
+    co, tris, vol = measure(bpy.data.objects["Sphere"], depsgraph)
+    if key == "volume":
+        co.tofile(os.path.join(OUT, "coords_%04d.f32" % frame))
+        tris.tofile(os.path.join(OUT, "tris_%04d.i32" % frame))
+    rec = RESULT["frames"].setdefault(str(frame), {})
+    rec.update({key: vol, "n_verts": len(co) // 3, "n_tris": len(tris) // 3, "mode": depsgraph.mode})
+    dump()
+
+
 @persistent
 def on_frame(scene, depsgraph=None):
-    # During `-a` this receives the render pipeline's depsgraph, evaluated at the frame being
-    # rendered (render_pre/post get no depsgraph, and the context's one is not advanced).
+    # During `-a` this gets the render pipeline's depsgraph, evaluated at the frame about to be
+    # rendered (render_pre/post/write get none, and the context's one is not advanced). Data
+    # written by frame_change_post handlers (VP-FFD's offsets) is evaluated only after them.
     if depsgraph is None:
         return
-    frame = scene.frame_current
-    co, tris, vol = measure(scene.objects["Sphere"], depsgraph)
-    co.tofile(os.path.join(OUT, "coords_%04d.f32" % frame))
-    tris.tofile(os.path.join(OUT, "tris_%04d.i32" % frame))
-    RESULT["frames"][str(frame)] = {"volume": vol, "n_verts": len(co) // 3,
-                                     "n_tris": len(tris) // 3, "mode": depsgraph.mode}
-    dump()
+    DEPSGRAPH["render"] = depsgraph
+    save(scene.frame_current, "volume_frame_change", depsgraph)
 
 
 @persistent
 def on_write(scene, *args):
+    # After the frame was rendered and its image written: the same depsgraph now holds exactly
+    # what was rendered, including any updates the frame handlers made.
     RESULT["written"].append(scene.frame_current)
-    dump()
+    save(scene.frame_current, "volume", DEPSGRAPH["render"])
 
 
 bpy.app.handlers.frame_change_post.append(on_frame)
@@ -243,6 +257,8 @@ def test_blender_binary_renders_deformed_animation(workdir, tmp_path):
         assert np.isfinite(co).all()
         volumes[frame] = _volume(co, tris)
         assert volumes[frame] == pytest.approx(rec["volume"], rel=1e-12, abs=1e-12), (frame, rec)
+        if DEFORMER == "lattice":   # nothing changes data in frame handlers: both reads agree
+            assert rec["volume_frame_change"] == rec["volume"], (frame, rec)
 
     rest = volumes[1]   # frame 1: key value 0, the undeformed lattice is the identity map
     assert 3.5 < rest < 4.19, rest   # subdivision-2 unit icosphere (sphere: 4.18879)

@@ -36,6 +36,8 @@ DTYPES = (("float32", np.float32), ("float64", np.float64))
 TARGET_BYTES_PER_VERTEX = 200
 TARGET_SOLVE_OVER_BLENDER = 3.0
 TARGET_SIZE_FOR_RATIO = 163842  # the ~160k mesh
+TARGET_FRAME_SET_RATIO = 4.0     # frame_set with VP-FFD vs a plain Lattice modifier scene
+TARGET_HANDLER_OVERHEAD_MS = 15.0
 BLENDER_EVALS = 15
 BLENDER_WARMUPS = 2
 
@@ -70,11 +72,12 @@ def timed(fn, repeat):
 
 # ------------------------------------------------------------------------------------ Blender
 
-def blender_modifier(verts, tris, points, evals=BLENDER_EVALS, warmups=BLENDER_WARMUPS):
-    """Blender's Lattice modifier on the same mesh and lattice. Returns (dict, evaluated verts)."""
+def _build_scene(verts, tris, points):
+    """Mesh at identity and a 10x10x10 B-spline lattice whose object maps its rest grid onto
+    [-0.5, 0.5]^3, deformed to `points`. Returns (mesh object, lattice object, lattice data,
+    rest co (N, 3), scale, deformed co_deform as float32 flat)."""
     import bpy
 
-    bpy.ops.wm.read_factory_settings(use_empty=True)
     scene = bpy.context.scene
     V, F = len(verts), len(tris)
     nu, nv, nw = LATTICE_SHAPE
@@ -107,6 +110,16 @@ def blender_modifier(verts, tris, points, evals=BLENDER_EVALS, warmups=BLENDER_W
     base = (np.asarray(points, np.float64) * scale).astype(np.float32).ravel()
     lat.points.foreach_set("co_deform", base)
 
+    return ob, lat_ob, lat, co, scale, base
+
+
+def blender_modifier(verts, tris, points, evals=BLENDER_EVALS, warmups=BLENDER_WARMUPS):
+    """Blender's Lattice modifier on the same mesh and lattice. Returns (dict, evaluated verts)."""
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    V = len(verts)
+    ob, lat_ob, lat, co, scale, base = _build_scene(verts, tris, points)
     mod = ob.modifiers.new("Lattice", "LATTICE")
     mod.object = lat_ob
 
@@ -144,6 +157,83 @@ def blender_modifier(verts, tris, points, evals=BLENDER_EVALS, warmups=BLENDER_W
     # Leave an empty scene so the next size does not carry this one's memory.
     bpy.ops.wm.read_factory_settings(use_empty=True)
     return info, evaluated
+
+
+FRAME_SET_FRAMES = 12
+_EXTENSION = {}
+
+
+def _extension_engine():
+    """Install the built extension zip through Blender's own installer (once per process) and
+    return its engine module. BLENDER_USER_RESOURCES was isolated before bpy was imported."""
+    if "engine" not in _EXTENSION:
+        import importlib
+        import tempfile
+        eh = _harness()
+        zip_path = eh.build_extension_zip(_ROOT, tempfile.mkdtemp(prefix="vpffd-bench-zip-"))
+        module = eh.install_extension(zip_path)
+        _EXTENSION["module"] = module
+        _EXTENSION["engine"] = importlib.import_module(module + ".operators.engine")
+    _harness().ensure_enabled(_EXTENSION["module"])  # read_factory_settings disables add-ons
+    return _EXTENSION["engine"]
+
+
+def _harness():
+    tests = os.path.join(_ROOT, "tests")
+    if tests not in sys.path:
+        sys.path.insert(0, tests)
+    import extension_harness
+    return extension_harness
+
+
+def extension_frame_set(verts, tris, points, frames=FRAME_SET_FRAMES):
+    """Median `scene.frame_set()` time with the mesh bound by VP-FFD (XYZ correction) and with a
+    plain Lattice modifier, over the same animated lattice (a shape key from rest to `points`)."""
+    import bpy
+
+    engine = _extension_engine()
+    eh = _harness()
+    out = {"frames": frames}
+    for kind in ("plain", "vpffd"):
+        eh.reset_scene()
+        ob, lat_ob, lat, co, scale, base = _build_scene(verts, tris, points)
+        lat.points.foreach_set("co_deform", co.astype(np.float32).ravel())
+        lat_ob.shape_key_add(name="Basis")
+        key = lat_ob.shape_key_add(name="Deform")
+        key.data.foreach_set("co", base)
+        for frame, value in ((1, 0.0), (frames + 1, 1.0)):
+            key.value = value
+            key.keyframe_insert("value", frame=frame)
+        if kind == "plain":
+            ob.modifiers.new("Lattice", "LATTICE").object = lat_ob
+        else:
+            ob.vpffd.lattice = lat_ob
+            ob.vpffd.axes = "XYZ"
+            with bpy.context.temp_override(object=ob, active_object=ob):
+                if bpy.ops.object.vpffd_bind() != {"FINISHED"}:
+                    raise RuntimeError("binding failed")
+        scene = bpy.context.scene
+        scene.frame_set(1)
+        wall, update, core = [], [], []
+        for f in range(2, frames + 2):
+            t0 = time.perf_counter()
+            scene.frame_set(f)
+            wall.append((time.perf_counter() - t0) * 1e3)
+            if kind == "vpffd":
+                info = engine.stats(ob)
+                if info.get("error"):
+                    raise RuntimeError(info["error"])
+                update.append(info["seconds"] * 1e3)
+                core.append(info["core_seconds"] * 1e3)
+        out[f"{kind}_frame_set_ms_median"] = statistics.median(wall)
+        if kind == "vpffd":
+            out["vpffd_update_ms_median"] = statistics.median(update)
+            out["vpffd_core_solve_ms_median"] = statistics.median(core)
+            out["handler_overhead_ms_median"] = float(statistics.median(np.subtract(update, core)))
+            out["volume_percent_last"] = engine.stats(ob)["volume_percent"]
+    out["frame_set_ratio"] = out["vpffd_frame_set_ms_median"] / out["plain_frame_set_ms_median"]
+    eh.reset_scene()
+    return out
 
 
 # ------------------------------------------------------------------------------------ one size
@@ -206,6 +296,11 @@ def bench_size(sub, repeat, use_blender):
         bl = info["execution_time_ms_median"]
         info["ns_per_vertex"] = bl * 1e6 / V
         res["blender"] = info
+        if V == TARGET_SIZE_FOR_RATIO:
+            res["extension_frame_set"] = fs = extension_frame_set(verts, tris, points)
+            log(f"  frame_set: plain Lattice modifier {fs['plain_frame_set_ms_median']:.1f} ms, VP-FFD "
+                f"{fs['vpffd_frame_set_ms_median']:.1f} ms ({fs['frame_set_ratio']:.2f}x); handler "
+                f"overhead beyond the solve {fs['handler_overhead_ms_median']:.1f} ms")
         res["ratios_vs_blender"] = {
             name: {"deform": e["deform_ms_median"] / bl, "solve_xyz": e["solve_xyz_ms_median"] / bl}
             for name, e in res["dtypes"].items()}
@@ -259,6 +354,14 @@ def summarize(results, use_blender):
             ratio = r["ratios_vs_blender"][name]["solve_xyz"]
             t[f"solve_over_blender_{name}"] = ratio
             t[f"solve_over_blender_ok_{name}"] = ratio <= TARGET_SOLVE_OVER_BLENDER
+        fs = r.get("extension_frame_set")
+        if fs:
+            t["frame_set_ratio_target"] = TARGET_FRAME_SET_RATIO
+            t["frame_set_ratio"] = fs["frame_set_ratio"]
+            t["frame_set_ratio_ok"] = fs["frame_set_ratio"] <= TARGET_FRAME_SET_RATIO
+            t["handler_overhead_ms_target"] = TARGET_HANDLER_OVERHEAD_MS
+            t["handler_overhead_ms"] = float(fs["handler_overhead_ms_median"])
+            t["handler_overhead_ok"] = fs["handler_overhead_ms_median"] <= TARGET_HANDLER_OVERHEAD_MS
     return summary
 
 
@@ -306,6 +409,14 @@ def markdown(report):
             f"| {r['n_verts']:,} | {blender} | {f32['deform_ms_median']:.1f} ms | "
             f"{f32['solve_xyz_ms_median']:.1f} ms | {r32} | {f64['solve_xyz_ms_median']:.1f} ms | {r64} | "
             f"{f32['bytes_per_vertex']:.0f} / {f64['bytes_per_vertex']:.0f} | {f32['bind_ms']:.0f} ms |")
+    for r in report["results"]:
+        fs = r.get("extension_frame_set")
+        if fs:
+            lines += ["", f"In Blender, {r['n_verts']:,} vertices, {fs['frames']} animated frames: "
+                      f"`scene.frame_set()` takes {fs['vpffd_frame_set_ms_median']:.1f} ms with VP-FFD (XYZ) "
+                      f"against {fs['plain_frame_set_ms_median']:.1f} ms with a plain Lattice modifier "
+                      f"({fs['frame_set_ratio']:.2f}x); the extension's own work beyond the core solve "
+                      f"({fs['vpffd_core_solve_ms_median']:.1f} ms) is {fs['handler_overhead_ms_median']:.1f} ms."]
     lin = report["summary"]["linearity"]
     if "fitted_exponent" in lin["float32"]["solve_xyz"]:
         lines += ["", f"Solve time grows as V^{lin['float32']['solve_xyz']['fitted_exponent']:.2f} (float32) and "
@@ -339,6 +450,8 @@ def main(argv=None):
     if not sizes or args.repeat < 1:
         ap.error("need at least one size and --repeat >= 1")
     use_blender = not args.no_blender
+    if use_blender:
+        _harness().isolate_user_resources()   # before bpy is imported: the extension installs there
 
     t0 = time.perf_counter()
     env = environment(use_blender)

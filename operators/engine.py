@@ -190,6 +190,7 @@ def update(obj, depsgraph, force=False):
 
         t0 = time.perf_counter()
         binding = state.binding_for(lattice, grid, L, influence)
+        t_core = time.perf_counter()
         # Strength scales every displacement alike, so it scales the lattice offsets instead of
         # the binding's weights (no re-bind when it is animated).
         P = grid + s.strength * (points - grid)
@@ -204,6 +205,7 @@ def update(obj, depsgraph, force=False):
             volume = plain = None
             warnings = []
             used_points = P
+        core_seconds = time.perf_counter() - t_core
         offsets = meshio.transform(verts, np.linalg.inv(L)) - state.rest
         if not np.isfinite(offsets).all():
             raise ValueError("the solve produced non-finite offsets; nothing was written")
@@ -212,7 +214,8 @@ def update(obj, depsgraph, force=False):
         state.signature, state.points = signature, used_points
 
         rest_volume = binding.rest_volume
-        info = dict(error=None, seconds=seconds, warnings=warnings, rest_volume=rest_volume,
+        info = dict(error=None, seconds=seconds, core_seconds=core_seconds, warnings=warnings,
+                    rest_volume=rest_volume,
                     closed=binding.is_closed, n_verts=binding.n_verts, folds=None)
         if volume is None:  # no correction: measure what the plain deformation does
             volume = plain = vp.signed_volume(verts, state.tris, origin=lattice.centre)

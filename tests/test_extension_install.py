@@ -165,7 +165,6 @@ def test_scene_reset_and_disable_in_fresh_blender(fresh):
     assert fresh["enabled_after_reenable"] is True
 
 
-@pytest.mark.xfail(strict=False, reason="operators land with the extension issue")
 def test_operators_and_properties_registered(fresh):
     reg = fresh["registration"]
     assert reg["operators"] == {op: True for op in eh.EXPECTED_OPERATORS}

@@ -18,7 +18,9 @@ folder share installed extensions, and nothing leaks between work folders.
     remove_workdir(work)
 
 Runs that should see an installed extension must not pass `--factory-startup` (that skips the
-saved preferences in which the extension is enabled).
+saved preferences in which the extension is enabled), and scripts must not reset with
+`wm.read_factory_settings` (use `wm.read_homefile(use_empty=True)`). Blender exits 0 after a
+failing `--python` script unless `--python-exit-code 1` comes before it.
 """
 import os
 import shutil

@@ -2,19 +2,22 @@
 
 Process 1 (`blender -b --python make_scene.py`): builds an icosphere inside a 4x4x4 lattice,
 animates the lattice with a shape key (value 0 at frame 1 -> 1 at frame 3; the key scales the
-lattice by 1.3, 1.3, 0.5), deforms the sphere with it and saves scene.blend.
-Process 2 (`blender -b scene.blend --python record.py -s 1 -e 3 -a`): renders 3 Workbench
-frames at 32x32; for every frame it renders, a frame_change_post handler reads the evaluated
-sphere from the render depsgraph, writes its float32 vertex coordinates and its volume.
-The host then recomputes the volumes with numpy from those coordinates and checks them, and
-checks the images.
+lattice points by 1.3, 1.3, 0.5), deforms the sphere with it, writes the undeformed mesh's
+float32 coordinates and saves scene.blend.
+Process 2, a fresh one (`blender -b scene.blend --python record.py -s 1 -e 3 -a`): renders 3
+Workbench frames at 32x32; for every frame, a render_write handler reads the evaluated sphere
+from the render pipeline's depsgraph (kept from frame_change_post, which is the only handler that
+gets it) and writes its float32 vertex coordinates, triangles and volume. The host recomputes the
+volumes with numpy from those coordinates, checks them, and checks the images.
 
-The deformer is chosen by DEFORMER ("lattice": Blender's Lattice modifier; "vpffd": the VP-FFD
-extension, built from this repository, installed in the chroot's Blender and bound with
-bpy.ops.object.vpffd_bind()). Only "lattice" runs for now.
+The deformer is a parameter: "lattice" (Blender's Lattice modifier) runs by default; "vpffd"
+builds the extension from this working tree, installs it in the chroot's Blender and binds with
+`sphere.vpffd.lattice = lattice; bpy.ops.object.vpffd_bind()`, then expects the volume to stay
+the rest volume. Choose with VPFFD_E2E_DEFORMERS=lattice,vpffd (or change DEFORMERS below).
+VPFFD_E2E_KEEP=1 keeps the work folder (<chroot>/tmp/vpffd-e2e-*) for inspection.
 
-Skipped only when not root or when debootstrap cannot be installed; everything else (network,
-apt, Blender) failing is a test failure. First run: ~70 s to make the chroot; then a few seconds.
+Skipped only when not root or when debootstrap cannot be installed; anything else failing
+(network, apt, Blender) fails the test. First run: ~100 s to make the chroot; later ~5 s.
 """
 import json
 import os
@@ -25,25 +28,28 @@ import pytest
 
 try:
     from . import blender_chroot as bc
-except ImportError:  # collected without the package (e.g. rootdir-less import modes)
+except ImportError:  # imported without its package
     import blender_chroot as bc
 
-DEFORMER = os.environ.get("VPFFD_E2E_DEFORMER", "lattice")   # "lattice" or "vpffd"
+DEFORMERS = os.environ.get("VPFFD_E2E_DEFORMERS", "lattice").split(",")
 FRAMES = (1, 2, 3)
 SQUASH = (1.3, 1.3, 0.5)        # lattice shape-key scale at full value (frame 3)
 KEY_VALUE = {1: 0.0, 2: 0.5, 3: 1.0}   # two auto-clamped keys: exactly 0.5 half-way
 
 # ---------------------------------------------------------------- scripts run inside Blender ---
 MAKE_SCENE = r'''
+# argv after "--": OUT_BLEND DEFORMER SX SY SZ. Runs with the work folder as cwd.
+import os
 import sys
 import bmesh
 import bpy
+import numpy as np
 
 argv = sys.argv[sys.argv.index("--") + 1:]
 out_blend, deformer = argv[0], argv[1]
 SQUASH = tuple(float(v) for v in argv[2:5])
 
-bpy.ops.wm.read_factory_settings(use_empty=True)
+bpy.ops.wm.read_homefile(use_empty=True)   # keeps the preferences (enabled add-ons)
 scene = bpy.context.scene
 
 lt = bpy.data.lattices.new("Lattice")
@@ -59,6 +65,16 @@ bm.to_mesh(me)
 bm.free()
 sphere = bpy.data.objects.new("Sphere", me)
 scene.collection.objects.link(sphere)
+
+# The undeformed mesh, for the host to compute the rest volume from.
+os.makedirs("measure", exist_ok=True)
+rest = np.empty(len(me.vertices) * 3, np.float32)
+me.vertices.foreach_get("co", rest)
+rest.tofile("measure/rest_coords.f32")
+me.calc_loop_triangles()
+rest_tris = np.empty(len(me.loop_triangles) * 3, np.int32)
+me.loop_triangles.foreach_get("vertices", rest_tris)
+rest_tris.tofile("measure/rest_tris.i32")
 
 # Animate the lattice: keyframed co_deform is not animatable, a shape key value is.
 lattice.shape_key_add(name="Basis", from_mix=False)
@@ -210,63 +226,75 @@ def _check(result, what):
 
 
 @pytest.mark.e2e
-def test_blender_binary_renders_deformed_animation(workdir, tmp_path):
+@pytest.mark.parametrize("deformer", DEFORMERS)
+def test_blender_binary_renders_deformed_animation(deformer, workdir, tmp_path):
     scripts = tmp_path / "scripts"
     scripts.mkdir()
     (scripts / "make_scene.py").write_text(textwrap.dedent(MAKE_SCENE))
     (scripts / "record.py").write_text(textwrap.dedent(RECORD))
+    measure = os.path.join(workdir, "measure")
 
-    if DEFORMER == "vpffd":
+    if deformer == "vpffd":
         zip_path = bc.build_extension(bc.REPO_ROOT, workdir)
         bc.install_extension(zip_path, workdir)
 
-    # Process 1: build and save the scene. (No --factory-startup: an installed extension must load.)
+    # Process 1: build and save the scene. No --factory-startup (an installed extension must
+    # load); --python-exit-code, because Blender exits 0 after a failing --python script.
     out = _check(bc.run_blender(
-        ["-b", "--python", "make_scene.py", "--", "{work}/scene.blend", DEFORMER] + [str(s) for s in SQUASH],
+        ["-b", "--python-exit-code", "1", "--python", "make_scene.py", "--",
+         "{work}/scene.blend", deformer] + [repr(k) for k in SQUASH],
         files=[str(scripts / "make_scene.py")], workdir=workdir, timeout=300), "make_scene")
     assert "VPFFD_E2E_SAVED" in out
     assert os.path.isfile(os.path.join(workdir, "scene.blend"))
 
     # Process 2: a fresh Blender renders frames 1..3 of the saved file, recording each frame.
     out = _check(bc.run_blender(
-        ["-b", "scene.blend", "--python", "record.py", "-s", str(FRAMES[0]), "-e", str(FRAMES[-1]), "-a"],
+        ["-b", "scene.blend", "--python-exit-code", "1", "--python", "record.py",
+         "-s", str(FRAMES[0]), "-e", str(FRAMES[-1]), "-a"],
         files=[str(scripts / "record.py")], workdir=workdir, timeout=300), "render")
 
-    with open(os.path.join(workdir, "measure", "volumes.json")) as f:
+    with open(os.path.join(measure, "volumes.json")) as f:
         result = json.load(f)
     assert result["blender"].startswith("4.3"), result["blender"]
     assert sorted(result["written"]) == list(FRAMES), (result, out[-2000:])
     assert sorted(int(k) for k in result["frames"]) == list(FRAMES), result
 
-    # Images: one valid PNG per frame.
+    # Images: one PNG per frame, and the squash shows (frame 1 differs from frame 3).
+    images = {}
     for frame in FRAMES:
         png = os.path.join(workdir, "frames", "f_%04d.png" % frame)
         assert os.path.isfile(png), "frame %d not rendered: %s" % (frame, out[-2000:])
         with open(png, "rb") as f:
-            assert f.read(8) == b"\x89PNG\r\n\x1a\n"
-        assert os.path.getsize(png) > 100
+            images[frame] = f.read()
+        assert images[frame][:8] == b"\x89PNG\r\n\x1a\n" and len(images[frame]) > 100
+    assert images[1] != images[3]
 
     # Volumes: recorded in Blender == recomputed here from the same float32 coordinates.
-    volumes = {}
+    rest_co = np.fromfile(os.path.join(measure, "rest_coords.f32"), np.float32)
+    rest = _volume(rest_co, np.fromfile(os.path.join(measure, "rest_tris.i32"), np.int32))
+    assert 3.5 < rest < 4.19, rest   # subdivision-2 unit icosphere (sphere: 4.18879)
+    volumes, coords = {}, {}
     for frame in FRAMES:
         rec = result["frames"][str(frame)]
         assert rec["mode"] == "RENDER", rec
-        co = np.fromfile(os.path.join(workdir, "measure", "coords_%04d.f32" % frame), np.float32)
-        tris = np.fromfile(os.path.join(workdir, "measure", "tris_%04d.i32" % frame), np.int32)
-        assert co.size == 3 * rec["n_verts"] and tris.size == 3 * rec["n_tris"]
+        co = np.fromfile(os.path.join(measure, "coords_%04d.f32" % frame), np.float32)
+        tris = np.fromfile(os.path.join(measure, "tris_%04d.i32" % frame), np.int32)
+        assert co.size == 3 * rec["n_verts"] == rest_co.size and tris.size == 3 * rec["n_tris"]
         assert np.isfinite(co).all()
+        coords[frame] = co.reshape(-1, 3)
         volumes[frame] = _volume(co, tris)
         assert volumes[frame] == pytest.approx(rec["volume"], rel=1e-12, abs=1e-12), (frame, rec)
-        if DEFORMER == "lattice":   # nothing changes data in frame handlers: both reads agree
+        if deformer == "lattice":   # no handler changes data, so both reads agree
             assert rec["volume_frame_change"] == rec["volume"], (frame, rec)
+    # The mesh really was squashed in the render (z extent: 0.5x for the plain lattice).
+    assert np.ptp(coords[3][:, 2]) < 0.9 * np.ptp(coords[1][:, 2])
 
-    rest = volumes[1]   # frame 1: key value 0, the undeformed lattice is the identity map
-    assert 3.5 < rest < 4.19, rest   # subdivision-2 unit icosphere (sphere: 4.18879)
-    if DEFORMER == "lattice":
-        # The key scales the lattice affinely, so the deformed volume scales by the determinant.
+    if deformer == "lattice":
+        # The key scales the lattice affinely, so the volume scales by the determinant; at
+        # frame 1 the undeformed lattice is the identity map.
         for frame in FRAMES:
             s = [1.0 + KEY_VALUE[frame] * (k - 1.0) for k in SQUASH]
             assert volumes[frame] == pytest.approx(rest * s[0] * s[1] * s[2], rel=1e-5), (frame, volumes)
     else:
-        for frame in FRAMES:   # VP-FFD keeps the enclosed volume
-            assert volumes[frame] == pytest.approx(rest, rel=1e-5), (frame, volumes)
+        for frame in FRAMES:   # VP-FFD keeps the enclosed volume (float32 solver)
+            assert volumes[frame] == pytest.approx(rest, rel=1e-5), (frame, rest, volumes)

@@ -31,7 +31,7 @@ try:
 except ImportError:  # imported without its package
     import blender_chroot as bc
 
-DEFORMERS = os.environ.get("VPFFD_E2E_DEFORMERS", "lattice").split(",")
+DEFORMERS = os.environ.get("VPFFD_E2E_DEFORMERS", "lattice,vpffd").split(",")
 FRAMES = (1, 2, 3)
 SQUASH = (1.3, 1.3, 0.5)        # lattice shape-key scale at full value (frame 3)
 KEY_VALUE = {1: 0.0, 2: 0.5, 3: 1.0}   # two auto-clamped keys: exactly 0.5 half-way

@@ -15,7 +15,7 @@ from . import meshio, modifier
 
 WEIGHT_ATTRIBUTE = "vpffd_weight"   # vertex-group weight at bind time (1 without a group)
 PIN_ATTRIBUTE = "vpffd_pin"         # 1 for pinned vertices
-FOLD_CHECK_MAX_VERTS = 20000        # above this, folds are counted on request only (Check Folds)
+FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request only (Check Folds)
 
 _cache = {}   # object session_uid -> _Bound
 _stats = {}   # object session_uid -> dict shown by the panel
@@ -74,7 +74,8 @@ class _Bound:
 
     def __init__(self, obj):
         mesh = obj.data
-        self.rest = meshio.mesh_coords(mesh)
+        self.rest32 = meshio.mesh_coords(mesh, np.float32)
+        self.rest = self.rest32.astype(np.float64)
         self.tris = meshio.mesh_triangles(mesh)
         weight = _float_attribute(mesh, WEIGHT_ATTRIBUTE)
         self.weight = np.ones(len(self.rest)) if weight is None else weight
@@ -83,6 +84,10 @@ class _Bound:
         self.binding = None
         self.key = None
         self.signature = None
+
+    def edited(self, mesh):
+        """True when the mesh's own coordinates differ from those this state was built from."""
+        return not np.array_equal(meshio.mesh_coords(mesh, np.float32), self.rest32)
 
     def binding_for(self, lattice, grid, L, influence):
         """The binding for this lattice, mesh-to-lattice matrix and influence (rebuilt on change)."""
@@ -151,9 +156,12 @@ def update(obj, depsgraph, force=False):
     try:
         if not s.is_bound:
             return False
-        if modifier.find(obj) is None:
+        mod = modifier.find(obj)
+        if mod is None:
             _set_stats(obj, error="the VP-FFD modifier was removed: Bind again, or Unbind")
             return False
+        if not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
+            return False  # switched off for this evaluation, like any modifier
         if obj.mode == "EDIT":
             _set_stats(obj, **{**stats(obj), "error": "paused while the mesh is in Edit Mode"})
             return False
@@ -177,7 +185,9 @@ def update(obj, depsgraph, force=False):
         L = np.linalg.inv(M_lat) @ meshio.matrix(ob_eval.matrix_world)
         axes, directions = _directions(obj, M_lat)
         state = _cache.get(uid)
-        if state is None:
+        if state is None or state.edited(mesh):
+            # First use (e.g. after loading), or the vertices were moved in Edit Mode: embed the
+            # mesh's coordinates as they are now, as the Lattice modifier would.
             state = _cache[uid] = _Bound(obj)
         influence = _influence(obj, state)
         pins = _pin_targets(obj, state, M_lat)

@@ -6,11 +6,11 @@ OFFSET_ATTRIBUTE = "vpffd_offset"
 _WEIGHT_ATTRIBUTE = "vpffd_weight_probe"
 
 
-def mesh_coords(mesh):
-    """(V, 3) float64 vertex positions of a Mesh datablock (its own, undeformed coordinates)."""
+def mesh_coords(mesh, dtype=np.float64):
+    """(V, 3) vertex positions of a Mesh datablock (its own, undeformed coordinates)."""
     buf = np.empty(len(mesh.vertices) * 3, np.float32)
     mesh.vertices.foreach_get("co", buf)
-    return buf.reshape(-1, 3).astype(np.float64)
+    return buf.reshape(-1, 3).astype(dtype, copy=False)
 
 
 def mesh_triangles(mesh):

@@ -58,17 +58,26 @@ class Binding:
 
     # -- products with the factored B (all in slot order; slots = padded, block-sorted vertices) --
 
-    def _forward(self, d):
-        """(S B d) at every slot for a scalar field d (N,) on the control points: (n_slots,)."""
+    def _forward(self, d, wuv=None, ww=None):
+        """(S B d) at every slot for a scalar field d (N,) on the control points: (n_slots,).
+        `wuv`, `ww` replace the stored weight factors (same layout), e.g. by their derivatives."""
+        wuv = self.wuv if wuv is None else wuv
+        ww = self.ww if ww is None else ww
         # Contract the (v x u) weights first: the intermediate is then Kw values per vertex.
         D = np.asarray(d, dtype=self.dtype)[self.run_idx]
         out = np.empty((self.ww.shape[0], self.block_size), self.dtype)
 
         def part(bl):
-            T = np.matmul(D[self.block_run[bl]], self.wuv[bl])
-            np.einsum("bks,bks->bs", T, self.ww[bl], out=out[bl])
+            T = np.matmul(D[self.block_run[bl]], wuv[bl])
+            np.einsum("bks,bks->bs", T, ww[bl], out=out[bl])
         parallel.run(part, self.block_parts)
         return out.reshape(-1)
+
+    def _block_layout(self, per_vertex):
+        """(V, K) per-vertex factors -> the (n_blocks, K, block) layout of `wuv` and `ww`."""
+        out = np.zeros((self.x0.shape[1], per_vertex.shape[1]), self.dtype)
+        out[self.slot] = per_vertex
+        return np.ascontiguousarray(out.reshape(-1, self.block_size, out.shape[1]).transpose(0, 2, 1))
 
     def _run_transpose(self, g):
         """Per-run pieces of (S B)^T g for g (n_slots,): (n_runs, Kw, Kv*Ku), to scatter with run_idx.

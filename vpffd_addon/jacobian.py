@@ -3,34 +3,35 @@ import numpy as np
 
 from .bases import axis_taps
 
-_CHUNK = 8192  # vertices per pass: bounds the (chunk, Kw, Kv, Ku, 3) gather
-
 
 def jacobian_det(binding, points):
     """det(d x' / d x) at every bound vertex's rest position, for control points `points` (N, 3).
 
-    The map is x' = x + s (S B (P - P0)), s the vertex's influence held fixed. Returns (V,) float64
-    in the mesh's vertex order.
+    The map is x' = x + s (S B (P - P0)), s the vertex's influence held fixed. Column a of the
+    Jacobian is the same product as the deformation with axis a's weights replaced by their
+    derivatives, so it runs through the binding's block products. Returns (V,) float64 in the mesh's
+    vertex order.
     """
     b = binding
     lat = b.lattice
     D = b._displacements(points)
     rest = b._to_verts(b.x0)
-    influence = b.influence
-    out = np.empty(b.n_verts)
-    for start in range(0, b.n_verts, _CHUNK):
-        x = rest[start:start + _CHUNK]
-        taps = [axis_taps(x[:, a], lat.shape[a], lat.lo[a], lat.hi[a], lat.interpolation[a], derivative=True)
-                for a in range(3)]
-        grid = [np.clip(first[:, None] + np.arange(w.shape[1]), 0, lat.shape[a] - 1)
-                for a, (first, w, _) in enumerate(taps)]
-        nu, nv, _ = lat.shape
-        idx = (grid[2][:, :, None, None] * nv + grid[1][:, None, :, None]) * nu + grid[0][:, None, None, :]
-        Dg = D[idx]                                        # (c, Kw, Kv, Ku, 3)
-        (_, wu, du), (_, wv, dv), (_, ww, dw) = taps
-        cols = [np.einsum("cw,cv,cu,cwvux->cx", ww, wv, du, Dg, optimize=True),
-                np.einsum("cw,cv,cu,cwvux->cx", ww, dv, wu, Dg, optimize=True),
-                np.einsum("cw,cv,cu,cwvux->cx", dw, wv, wu, Dg, optimize=True)]
-        J = np.stack(cols, 2) * influence[start:start + _CHUNK, None, None] + np.eye(3)
-        out[start:start + len(x)] = np.linalg.det(J)
-    return out
+    taps = [axis_taps(rest[:, a], lat.shape[a], lat.lo[a], lat.hi[a], lat.interpolation[a], derivative=True)
+            for a in range(3)]
+    (_, wu, du), (_, wv, dv), (_, ww, dw) = taps
+    s = b.influence.astype(np.float64)[:, None]
+    V = b.n_verts
+
+    def outer(a, c):  # (V, Ka) x (V, Kc) -> (V, Ka * Kc), a slowest
+        return (a[:, :, None] * c[:, None, :]).reshape(V, -1)
+
+    factors = [(b._block_layout(outer(wv, du)), None),             # d/du: (v x du), w
+               (b._block_layout(outer(dv, wu)), None),             # d/dv: (dv x u), w
+               (None, b._block_layout(dw * s))]                    # d/dw: (v x u), dw
+    J = np.empty((V, 3, 3))
+    for col, (wuv, wwd) in enumerate(factors):
+        for comp in range(3):
+            slots = b._forward(D[:, comp], wuv=wuv, ww=wwd)
+            J[:, comp, col] = slots[b.slot]
+    J[:, [0, 1, 2], [0, 1, 2]] += 1.0
+    return np.linalg.det(J)

@@ -5,9 +5,9 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import handlers, ops, panel, properties
+from . import demos, handlers, ops, panel, properties
 
-classes = properties.classes + ops.classes + panel.classes
+classes = properties.classes + ops.classes + panel.classes + demos.classes
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
@@ -16,9 +16,11 @@ def register():
     _register_classes()
     properties.register()
     handlers.register()
+    demos.register()
 
 
 def unregister():
+    demos.unregister()
     handlers.unregister()
     properties.unregister()
     _unregister_classes()

@@ -432,3 +432,23 @@ def test_renders_run_the_solver_with_the_render_depsgraph(ext, tmp_path):
         assert (tmp_path / f"frame_{f:04d}.png").exists()
     assert eng.stats(ball).get("error") is None
     assert abs(eng.stats(ball)["volume_percent"] - 100) <= 100 * VOLUME_TOL
+
+
+def test_moved_vertices_are_re_embedded_and_the_modifier_goes_first(ext):
+    ball = _sphere()
+    ball.modifiers.new("Smooth", "SMOOTH")                     # a modifier already in the stack
+    lat = _lattice()
+    _animate_squash(lat, 0.5)
+    _bind(ball, lattice=lat, axes="XYZ")
+    assert ball.modifiers[0] == ext.module.operators.modifier.find(ball)
+    ball.modifiers["Smooth"].show_viewport = False
+    # Move the vertices (as an Edit Mode session would): the new shape is the new rest shape.
+    co = _mesh_co(ball).reshape(-1, 3)
+    co[:, 0] *= 1.3
+    ball.data.vertices.foreach_set("co", co.astype(np.float32).ravel())
+    ball.data.update()
+    rest = core.signed_volume(co.astype(np.float32).astype(float),
+                              core.icosphere(3, 0.8)[1])
+    bpy.context.scene.frame_set(15)
+    assert _engine(ext).stats(ball).get("error") is None
+    assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL

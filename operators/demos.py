@@ -1,0 +1,301 @@
+"""Demo scenes of the paper (seeds/003, Figures 1 and 6), in the Add menu: a bouncing ball and a
+twisting cube, each next to a plain Lattice modifier copy so the difference shows in one frame."""
+import math
+
+import bpy
+import numpy as np
+
+from .. import vpffd_addon as vp
+from . import engine
+
+BALL_FRAMES = (1, 60)
+CUBE_FRAMES = (1, 60)
+
+PLAIN_COLOUR = (0.85, 0.30, 0.25, 1.0)
+VPFFD_COLOUR = (0.20, 0.55, 0.90, 1.0)
+VPFFD_COLOUR_2 = (0.25, 0.75, 0.45, 1.0)
+
+
+# ------------------------------------------------------------------------------------ building
+
+def _material(name, rgba):
+    mat = bpy.data.materials.get(name) or bpy.data.materials.new(name)
+    mat.diffuse_color = rgba                 # Workbench and the viewport
+    if getattr(mat, "node_tree", None) is None and hasattr(mat, "use_nodes"):
+        mat.use_nodes = True
+    bsdf = mat.node_tree.nodes.get("Principled BSDF") if mat.node_tree else None
+    if bsdf is not None:
+        bsdf.inputs["Base Color"].default_value = rgba
+        bsdf.inputs["Roughness"].default_value = 0.45
+    return mat
+
+
+def _mesh_object(scene, name, verts, tris, material=None, smooth=False):
+    me = bpy.data.meshes.new(name)
+    me.vertices.add(len(verts))
+    me.vertices.foreach_set("co", np.asarray(verts, np.float32).ravel())
+    me.loops.add(tris.size)
+    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
+    me.polygons.add(len(tris))
+    me.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
+    me.update(calc_edges=True)
+    if smooth:
+        me.shade_smooth()
+    if material is not None:
+        me.materials.append(material)
+    ob = bpy.data.objects.new(name, me)
+    scene.collection.objects.link(ob)
+    return ob
+
+
+def _lattice_object(scene, name, shape, half_extent, location):
+    """Lattice whose rest grid spans +-half_extent (3,) around `location`, B-spline on all axes."""
+    lt = bpy.data.lattices.new(name)
+    lt.points_u, lt.points_v, lt.points_w = shape
+    for a in "uvw":
+        setattr(lt, f"interpolation_type_{a}", "KEY_BSPLINE")
+    ob = bpy.data.objects.new(name, lt)
+    grid_half = 0.5 * (np.array(shape, float) - 1.0)          # RNA-resized grids have unit spacing
+    ob.scale = [h / g if g else 1.0 for h, g in zip(half_extent, grid_half)]
+    ob.location = location
+    scene.collection.objects.link(ob)
+    return ob
+
+
+def _label(scene, text, location, size=0.22):
+    curve = bpy.data.curves.new(f"Label {text}", "FONT")
+    curve.body = text
+    curve.align_x = "CENTER"
+    curve.size = size
+    ob = bpy.data.objects.new(f"Label {text}", curve)
+    ob.location = location
+    ob.rotation_euler = (math.radians(90), 0, 0)
+    ob.data.materials.append(_material("VP-FFD Demo Label", (0.08, 0.08, 0.08, 1.0)))
+    scene.collection.objects.link(ob)
+    return ob
+
+
+def _stage(scene, camera_location, camera_target, frames, ground_size):
+    """Ground, sun, camera and render settings shared by the demos."""
+    ground_v = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], float) * [ground_size, ground_size, 0]
+    _mesh_object(scene, "Ground", ground_v, np.array([[0, 1, 2], [0, 2, 3]]),
+                 _material("VP-FFD Demo Ground", (0.8, 0.8, 0.78, 1.0)))
+    sun = bpy.data.objects.new("Sun", bpy.data.lights.new("Sun", "SUN"))
+    sun.data.energy = 3.0
+    sun.rotation_euler = (math.radians(40), math.radians(15), math.radians(30))
+    scene.collection.objects.link(sun)
+    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    cam.location = camera_location
+    direction = np.subtract(camera_target, camera_location)
+    cam.rotation_euler = _look_rotation(direction)
+    cam.data.lens = 40
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    scene.frame_start, scene.frame_end = frames
+    scene.render.fps = 24
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.display.shading.light = "STUDIO"
+    scene.display.shading.color_type = "MATERIAL"
+    scene.display.shading.show_shadows = True
+    scene.render.resolution_x, scene.render.resolution_y = 640, 360
+    scene.render.film_transparent = False
+    scene.render.use_lock_interface = True
+
+
+def _look_rotation(direction):
+    """Euler angles that point a camera (looking down its -Z) along `direction`."""
+    x, y, z = direction
+    pitch = math.atan2(math.hypot(x, y), -z)
+    yaw = math.atan2(y, x) + math.pi / 2
+    return (pitch, 0.0, yaw)
+
+
+def _key(data, path, frame, value, interpolation=None):
+    setattr(data, path, value)
+    data.keyframe_insert(path, frame=frame)
+    if interpolation:
+        anim = data.id_data.animation_data if hasattr(data, "id_data") else None
+        for fc in _fcurves(anim):
+            for kp in fc.keyframe_points:
+                if kp.co[0] == frame:
+                    kp.interpolation = interpolation
+
+
+def _fcurves(anim):
+    """F-curves of an AnimData, in Blender 4.x (action.fcurves) and 5.x (layered actions)."""
+    if anim is None or anim.action is None:
+        return []
+    action = anim.action
+    if hasattr(action, "fcurves"):
+        return list(action.fcurves)
+    curves = []
+    for layer in getattr(action, "layers", ()):
+        for strip in layer.strips:
+            for bag in strip.channelbags:
+                curves.extend(bag.fcurves)
+    return curves
+
+
+def _bind(ob, depsgraph, **settings):
+    for k, v in settings.items():
+        setattr(ob.vpffd, k, v)
+    engine.bind(ob, depsgraph)
+
+
+def _plain(ob, lattice):
+    mod = ob.modifiers.new("Lattice", "LATTICE")
+    mod.object = lattice
+    return mod
+
+
+# -------------------------------------------------------------------------------- bouncing ball
+
+def _ball_rig(scene, name, x, colour):
+    """A ball parented to its own 4x4x4 lattice; the lattice falls, squashes on the ground
+    (shape key "Squash": flattened towards its floor) and stretches in flight ("Stretch")."""
+    radius, half = 0.5, 0.55
+    lat = _lattice_object(scene, f"{name} Lattice", (4, 4, 4), (half,) * 3, (x, 0.0, 2.5))
+    verts, tris = vp.icosphere(4, radius)
+    ball = _mesh_object(scene, name, verts, tris, _material(f"VP-FFD Demo {name}", colour), smooth=True)
+    ball.parent = lat
+    ball.scale = [1.0 / s for s in lat.scale]                 # undo the lattice's grid scaling
+    lat.shape_key_add(name="Basis")
+    co = np.empty(len(lat.data.points) * 3, np.float32)
+    lat.data.points.foreach_get("co", co)
+    co = co.reshape(-1, 3).astype(np.float64)
+    floor = co[:, 2].min()
+    squash = co.copy()
+    squash[:, 2] = floor + (co[:, 2] - floor) * 0.45
+    stretch = co * [0.9, 0.9, 1.25]
+    for key_name, target in (("Squash", squash), ("Stretch", stretch)):
+        key = lat.shape_key_add(name=key_name)
+        key.data.foreach_set("co", target.astype(np.float32).ravel())
+
+    # Centre height: 2.5 -> ground contact (centre at `half`) at 15 and 45, apex at 30 and 60.
+    ground = half
+    for f, z in ((1, 2.5), (15, ground), (21, ground), (33, 1.9), (45, ground), (51, ground), (60, 1.4)):
+        _key(lat, "location", f, (x, 0.0, z))
+    keys = lat.data.shape_keys.key_blocks
+    for f, v in ((1, 0.0), (14, 0.0), (18, 1.0), (21, 0.0), (44, 0.0), (48, 0.9), (51, 0.0), (60, 0.0)):
+        _key(keys["Squash"], "value", f, v)
+    for f, v in ((1, 0.0), (12, 0.5), (15, 0.0), (21, 0.0), (25, 0.45), (31, 0.0), (42, 0.45), (45, 0.0),
+                 (51, 0.0), (55, 0.4), (60, 0.0)):
+        _key(keys["Stretch"], "value", f, v)
+    return ball, lat
+
+
+def build_bouncing_ball(scene, depsgraph=None):
+    """Two balls falling side by side: a plain Lattice modifier (left) and VP-FFD correcting in
+    the horizontal directions (right), so the squash spreads sideways (paper section 5.1).
+    Returns {'plain': ball, 'vpffd': ball, 'lattices': [...]}."""
+    plain, plain_lat = _ball_rig(scene, "Ball Lattice Modifier", -0.9, PLAIN_COLOUR)
+    ours, our_lat = _ball_rig(scene, "Ball VP-FFD XY", 0.9, VPFFD_COLOUR)
+    _label(scene, "Lattice modifier", (-0.9, 0.0, 3.4))
+    _label(scene, "VP-FFD (XY)", (0.9, 0.0, 3.4))
+    _stage(scene, camera_location=(0.0, -8.5, 2.2), camera_target=(0.0, 0.0, 1.5), frames=BALL_FRAMES,
+           ground_size=5.0)
+    _plain(plain, plain_lat)
+    scene.frame_set(scene.frame_start)
+    dg = depsgraph or scene.view_layers[0].depsgraph
+    _bind(ours, dg, lattice=our_lat, axes="XY", space="LATTICE")
+    return {"plain": plain, "vpffd": ours, "lattices": [plain_lat, our_lat]}
+
+
+# ------------------------------------------------------------------------------- twisting cube
+
+def _cube_rig(scene, name, x, colour):
+    """A subdivided cube (6,146 vertices, as the paper's) in a 4x4x8 lattice that a Simple Deform
+    modifier twists from 0 to 360 degrees about Z."""
+    half = 0.55
+    lat = _lattice_object(scene, f"{name} Lattice", (4, 4, 8), (half, half, half), (x, 0.0, 0.6))
+    verts, tris = vp.box(32, 1.0)
+    cube = _mesh_object(scene, name, verts, tris, _material(f"VP-FFD Demo {name}", colour))
+    cube.parent = lat
+    cube.scale = [1.0 / s for s in lat.scale]
+    twist = lat.modifiers.new("Twist", "SIMPLE_DEFORM")
+    twist.deform_method = "TWIST"
+    twist.deform_axis = "Z"
+    _key(twist, "angle", CUBE_FRAMES[0], 0.0, "LINEAR")
+    _key(twist, "angle", CUBE_FRAMES[1], 2.0 * math.pi, "LINEAR")
+    return cube, lat
+
+
+def build_twisting_cube(scene, depsgraph=None):
+    """Three cubes twisted by their lattices (paper Figure 6): a plain Lattice modifier, VP-FFD
+    correcting in XY (top and bottom stay flat) and VP-FFD correcting in Z.
+    Returns {'plain': cube, 'vpffd_xy': cube, 'vpffd_z': cube, 'lattices': [...]}."""
+    plain, plain_lat = _cube_rig(scene, "Cube Lattice Modifier", -1.8, PLAIN_COLOUR)
+    xy, xy_lat = _cube_rig(scene, "Cube VP-FFD XY", 0.0, VPFFD_COLOUR)
+    z, z_lat = _cube_rig(scene, "Cube VP-FFD Z", 1.8, VPFFD_COLOUR_2)
+    for text, x in (("Lattice modifier", -1.8), ("VP-FFD (XY)", 0.0), ("VP-FFD (Z)", 1.8)):
+        _label(scene, text, (x, 0.0, 1.55))
+    _stage(scene, camera_location=(0.0, -7.5, 3.0), camera_target=(0.0, 0.0, 0.55), frames=CUBE_FRAMES,
+           ground_size=6.0)
+    _plain(plain, plain_lat)
+    scene.frame_set(scene.frame_start)
+    dg = depsgraph or scene.view_layers[0].depsgraph
+    _bind(xy, dg, lattice=xy_lat, axes="XY", space="LATTICE")
+    _bind(z, dg, lattice=z_lat, axes="Z", space="LATTICE")
+    return {"plain": plain, "vpffd_xy": xy, "vpffd_z": z, "lattices": [plain_lat, xy_lat, z_lat]}
+
+
+# ----------------------------------------------------------------------------------- operators
+
+class _DemoOperator:
+    bl_options = {"REGISTER", "UNDO"}
+    new_scene: bpy.props.BoolProperty(
+        name="New Scene", default=True,
+        description="Build the demo in a new scene (otherwise in the current one)")
+
+    def execute(self, context):
+        scene = context.scene
+        if self.new_scene:
+            scene = bpy.data.scenes.new(self.scene_name)
+            if context.window is not None:
+                context.window.scene = scene
+        try:
+            self.build(scene, scene.view_layers[0].depsgraph)
+        except (engine.BindError, ValueError) as exc:
+            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class OBJECT_OT_vpffd_demo_bouncing_ball(_DemoOperator, bpy.types.Operator):
+    """Add the bouncing-ball demo: plain Lattice modifier beside VP-FFD (XY correction)"""
+    bl_idname = "object.vpffd_demo_bouncing_ball"
+    bl_label = "Bouncing Ball (VP-FFD Demo)"
+    scene_name = "VP-FFD Bouncing Ball"
+    build = staticmethod(build_bouncing_ball)
+
+
+class OBJECT_OT_vpffd_demo_twisting_cube(_DemoOperator, bpy.types.Operator):
+    """Add the twisting-cube demo: plain Lattice modifier, VP-FFD XY and VP-FFD Z side by side"""
+    bl_idname = "object.vpffd_demo_twisting_cube"
+    bl_label = "Twisting Cube (VP-FFD Demo)"
+    scene_name = "VP-FFD Twisting Cube"
+    build = staticmethod(build_twisting_cube)
+
+
+class VIEW3D_MT_vpffd_demos(bpy.types.Menu):
+    bl_label = "VP-FFD Demos"
+    bl_idname = "VIEW3D_MT_vpffd_demos"
+
+    def draw(self, context):
+        self.layout.operator(OBJECT_OT_vpffd_demo_bouncing_ball.bl_idname, icon="MESH_UVSPHERE")
+        self.layout.operator(OBJECT_OT_vpffd_demo_twisting_cube.bl_idname, icon="MESH_CUBE")
+
+
+def _add_menu(self, context):
+    self.layout.menu(VIEW3D_MT_vpffd_demos.bl_idname, icon="MOD_LATTICE")
+
+
+classes = (OBJECT_OT_vpffd_demo_bouncing_ball, OBJECT_OT_vpffd_demo_twisting_cube, VIEW3D_MT_vpffd_demos)
+
+
+def register():
+    bpy.types.VIEW3D_MT_add.append(_add_menu)
+
+
+def unregister():
+    bpy.types.VIEW3D_MT_add.remove(_add_menu)

@@ -5,7 +5,7 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import demos, handlers, ops, panel, properties
+from . import demos, handlers, ops, overlay, panel, properties
 
 classes = properties.classes + ops.classes + panel.classes + demos.classes
 
@@ -17,9 +17,11 @@ def register():
     properties.register()
     handlers.register()
     demos.register()
+    overlay.register()
 
 
 def unregister():
+    overlay.unregister()
     demos.unregister()
     handlers.unregister()
     properties.unregister()

@@ -84,6 +84,7 @@ class _Bound:
         self.binding = None
         self.key = None
         self.signature = None
+        self.overlay = None
 
     def edited(self, mesh):
         """True when the mesh's own coordinates differ from those this state was built from."""
@@ -222,6 +223,7 @@ def update(obj, depsgraph, force=False):
         meshio.write_offsets(mesh, offsets)
         seconds = time.perf_counter() - t0
         state.signature, state.points = signature, used_points
+        state.overlay = (meshio.transform(used_points, M_lat), lattice.shape)
 
         rest_volume = binding.rest_volume
         info = dict(error=None, seconds=seconds, core_seconds=core_seconds, warnings=warnings,
@@ -240,6 +242,18 @@ def update(obj, depsgraph, force=False):
         _set_stats(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
         print(f"VP-FFD: {obj.name}: {exc}")
         return False
+
+
+def overlay_geometry(obj):
+    """(corrected lattice points in world space (N, 3), lattice shape, label) of the last solve,
+    or None before the first one."""
+    state = _cache.get(obj.session_uid)
+    if state is None or getattr(state, "overlay", None) is None:
+        return None
+    info = stats(obj)
+    label = (f"{info['volume_percent']:.3f}% volume" if "volume_percent" in info else "") \
+        if not info.get("error") else "VP-FFD: error"
+    return state.overlay + (label,)
 
 
 def check_folds(obj, depsgraph):

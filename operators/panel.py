@@ -54,6 +54,7 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
             row.operator("object.vpffd_unbind", icon="X")
             if modifier.find(ob) is not None:
                 layout.prop(s, "enabled")
+            layout.prop(s, "show_overlay")
         else:
             row.operator("object.vpffd_bind", icon="MOD_LATTICE")
         if bound:

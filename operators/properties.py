@@ -37,6 +37,13 @@ def _set_enabled(self, value):
         mod.show_render = value
 
 
+def _redraw(self, context):
+    for window in getattr(context.window_manager, "windows", ()):
+        for area in window.screen.areas:
+            if area.type == "VIEW_3D":
+                area.tag_redraw()
+
+
 def _settings_changed(self, context):
     from . import engine
     engine.request_update(self.id_data)
@@ -99,6 +106,10 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Show the VP-FFD modifier in viewport and render")
     is_bound: BoolProperty(name="Bound", default=False, options={"HIDDEN"},
                            description="Whether the mesh is bound to its lattice")
+    show_overlay: BoolProperty(
+        name="Show Corrected Lattice", default=False, update=_redraw,
+        description="Draw the corrected lattice the solver used, and the volume percentage, "
+                    "in the 3D viewport")
     bound_topology: IntVectorProperty(
         name="Bound Topology", size=4, options={"HIDDEN"},
         description="Vertex, edge, face and corner counts at bind time")

@@ -452,3 +452,21 @@ def test_moved_vertices_are_re_embedded_and_the_modifier_goes_first(ext):
     bpy.context.scene.frame_set(15)
     assert _engine(ext).stats(ball).get("error") is None
     assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
+
+
+def test_overlay_geometry_is_the_corrected_lattice_in_world_space(ext):
+    ball = _sphere()
+    lat = _lattice(location=(0.3, 0.0, 0.2))
+    _animate_squash(lat, 0.5)
+    _bind(ball, lattice=lat, axes="XY", show_overlay=True)
+    bpy.context.scene.frame_set(15)
+    points, shape, label = _engine(ext).overlay_geometry(ball)
+    assert shape == (4, 4, 4) and label.endswith("% volume")
+    M = np.array(lat.matrix_world)
+    deformed = _points(lat.evaluated_get(bpy.context.evaluated_depsgraph_get()), "co_deform")
+    user = deformed @ M[:3, :3].T + M[:3, 3]
+    moved = np.abs(points - user).max(1)
+    assert moved.max() > 1e-3                     # the correction moved lattice points sideways
+    assert np.abs((points - user)[:, 2]).max() <= 1e-6   # XY correction: no vertical motion
+    lines = ext.module.operators.overlay.lattice_lines(points, shape)
+    assert lines.shape == (2 * 3 * 4 * 4 * 3, 3)  # 3 axes x 16 rows x 3 segments, 2 ends each

@@ -1,0 +1,92 @@
+"""Viewport overlay: the corrected lattice (the control points the solver used) and the volume
+percentage next to each bound object whose "Show Corrected Lattice" is on.
+
+Only the draw callbacks touch `gpu`/`blf`, and only when Blender draws a 3D viewport; nothing runs
+at import or registration, and nothing is drawn in background mode.
+"""
+import bpy
+import numpy as np
+
+from . import engine
+
+LATTICE_COLOUR = (0.15, 0.85, 0.95, 0.9)
+TEXT_COLOUR = (1.0, 1.0, 1.0, 0.95)
+
+_handles = []
+
+
+def lattice_lines(points, shape):
+    """(2 * E, 3) segment end points joining neighbouring lattice points (N, 3), u fastest."""
+    nu, nv, nw = shape
+    grid = np.asarray(points, float).reshape(nw, nv, nu, 3)
+    segments = []
+    for axis in range(3):                         # along w, v, u in the (w, v, u) grid
+        if grid.shape[axis] > 1:
+            a = np.take(grid, range(grid.shape[axis] - 1), axis=axis).reshape(-1, 3)
+            b = np.take(grid, range(1, grid.shape[axis]), axis=axis).reshape(-1, 3)
+            segments.append(np.stack([a, b], 1).reshape(-1, 3))
+    return np.concatenate(segments) if segments else np.zeros((0, 3))
+
+
+def _visible(context):
+    scene = context.scene
+    for ob in engine.bound_objects(scene):
+        if ob.vpffd.show_overlay and ob.visible_get():
+            drawn = engine.overlay_geometry(ob)
+            if drawn is not None:
+                yield ob, drawn
+
+
+def _draw_lattices():
+    try:
+        import gpu
+        from gpu_extras.batch import batch_for_shader
+        context = bpy.context
+        shader = gpu.shader.from_builtin("UNIFORM_COLOR")
+        gpu.state.blend_set("ALPHA")
+        gpu.state.line_width_set(1.5)
+        gpu.state.point_size_set(5.0)
+        for _, (points, shape, _) in _visible(context):
+            shader.uniform_float("color", LATTICE_COLOUR)
+            batch_for_shader(shader, "LINES", {"pos": lattice_lines(points, shape).astype(np.float32)}).draw(shader)
+            batch_for_shader(shader, "POINTS", {"pos": points.astype(np.float32)}).draw(shader)
+        gpu.state.blend_set("NONE")
+    except Exception as exc:  # drawing must never raise into Blender
+        print(f"VP-FFD overlay: {exc}")
+
+
+def _draw_labels():
+    try:
+        import blf
+        from bpy_extras.view3d_utils import location_3d_to_region_2d
+        context = bpy.context
+        region, rv3d = context.region, context.region_data
+        if region is None or rv3d is None:
+            return
+        for ob, (_, _, text) in _visible(context):
+            at = location_3d_to_region_2d(region, rv3d, ob.matrix_world.translation)
+            if at is None:
+                continue
+            blf.size(0, 14)
+            blf.color(0, *TEXT_COLOUR)
+            blf.position(0, at.x + 12, at.y + 12, 0)
+            blf.draw(0, text)
+    except Exception as exc:
+        print(f"VP-FFD overlay: {exc}")
+
+
+def register():
+    if not _handles:
+        space = bpy.types.SpaceView3D
+        _handles.append(space.draw_handler_add(_draw_lattices, (), "WINDOW", "POST_VIEW"))
+        _handles.append(space.draw_handler_add(_draw_labels, (), "WINDOW", "POST_PIXEL"))
+
+
+def unregister():
+    space = bpy.types.SpaceView3D
+    while _handles:
+        handle = _handles.pop()
+        try:
+            space.draw_handler_remove(handle, "WINDOW")
+        except ValueError:
+            pass

@@ -15,6 +15,7 @@ from . import meshio, modifier
 
 WEIGHT_ATTRIBUTE = "vpffd_weight"   # vertex-group weight at bind time (1 without a group)
 PIN_ATTRIBUTE = "vpffd_pin"         # 1 for pinned vertices
+JACOBIAN_ATTRIBUTE = "vpffd_jacobian"  # det of the deformation's Jacobian (on request)
 FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request only (Check Folds)
 
 _cache = {}   # object session_uid -> _Bound
@@ -194,7 +195,7 @@ def update(obj, depsgraph, force=False):
         pins = _pin_targets(obj, state, M_lat)
         mobility = _mobility(obj)
         signature = (points.tobytes(), L.tobytes(), grid.tobytes(), axes, s.space, s.strength,
-                     s.volume_scale, s.use_islands, s.invert_vertex_group, repr(pins),
+                     s.volume_scale, s.use_islands, s.invert_vertex_group, repr(pins), s.use_fold_attribute,
                      None if mobility is None else mobility.tobytes())
         if not force and signature == state.signature:
             return False
@@ -234,7 +235,11 @@ def update(obj, depsgraph, force=False):
         if rest_volume:
             info["volume_percent"] = 100.0 * volume / rest_volume
             info["plain_percent"] = 100.0 * plain / rest_volume
-        if binding.n_verts <= FOLD_CHECK_MAX_VERTS:
+        if s.use_fold_attribute:
+            det = vp.jacobian_det(binding, used_points)
+            _float_attribute(mesh, JACOBIAN_ATTRIBUTE, det)
+            info["folds"] = int((det <= 0).sum())
+        elif binding.n_verts <= FOLD_CHECK_MAX_VERTS:
             info["folds"] = count_folds(binding, used_points)
         _set_stats(obj, **info)
         return True
@@ -367,7 +372,7 @@ def unbind(obj):
     mesh = obj.data
     modifier.remove(obj)
     meshio.remove_offsets(mesh)
-    for name in (WEIGHT_ATTRIBUTE, PIN_ATTRIBUTE):
+    for name in (WEIGHT_ATTRIBUTE, PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE):
         attr = mesh.attributes.get(name)
         if attr is not None:
             mesh.attributes.remove(attr)

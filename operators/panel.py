@@ -55,6 +55,7 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
             if modifier.find(ob) is not None:
                 layout.prop(s, "enabled")
             layout.prop(s, "show_overlay")
+            layout.prop(s, "use_fold_attribute")
         else:
             row.operator("object.vpffd_bind", icon="MOD_LATTICE")
         if bound:

@@ -106,6 +106,11 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Show the VP-FFD modifier in viewport and render")
     is_bound: BoolProperty(name="Bound", default=False, options={"HIDDEN"},
                            description="Whether the mesh is bound to its lattice")
+    use_fold_attribute: BoolProperty(
+        name="Fold Attribute", default=False, update=_settings_changed,
+        description="Write the deformation's Jacobian determinant per vertex to the attribute "
+                    "'vpffd_jacobian' (<= 0 where the lattice folds space), to colour the mesh by "
+                    "it; costs about one more solve per update")
     show_overlay: BoolProperty(
         name="Show Corrected Lattice", default=False, update=_redraw,
         description="Draw the corrected lattice the solver used, and the volume percentage, "

@@ -470,3 +470,27 @@ def test_overlay_geometry_is_the_corrected_lattice_in_world_space(ext):
     assert np.abs((points - user)[:, 2]).max() <= 1e-6   # XY correction: no vertical motion
     lines = ext.module.operators.overlay.lattice_lines(points, shape)
     assert lines.shape == (2 * 3 * 4 * 4 * 3, 3)  # 3 axes x 16 rows x 3 segments, 2 ends each
+
+
+def test_fold_attribute_holds_the_jacobian_determinant(ext):
+    ball = _sphere(subdivisions=2, radius=0.45)                # inside the lattice: |x|, |y| < 0.5
+    lat = _lattice(shape=(2, 2, 3), interp="KEY_LINEAR", scale=1.0)
+    lat.scale = (1.0, 1.0, 0.5)                                # z grid: -0.5, 0, 0.5
+    co = _points(lat)
+    fold = co.copy()
+    fold[co[:, 2] > 0, 0] *= -1.0          # the top layer mirrored in X: the upper half turns over
+    lat.data.points.foreach_set("co_deform", fold.astype(np.float32).ravel())
+    assert _bind(ball, lattice=lat, axes="NONE", use_fold_attribute=True) == {"FINISHED"}
+    bpy.context.scene.frame_set(1)
+    attr = ball.data.attributes["vpffd_jacobian"]
+    det = np.empty(len(ball.data.vertices), np.float32)
+    attr.data.foreach_get("value", det)
+    z = _mesh_co(ball).reshape(-1, 3)[:, 2]
+    # Linear interpolation: x scales by (1 - 2t) with t the height fraction inside the top cell,
+    # so det < 0 exactly above its middle (grid z > 0.5), and > 0 below.
+    grid_z = z / lat.scale[2]
+    assert (det[grid_z > 0.52] < 0).all() and (det[grid_z < 0.48] > 0).all()
+    assert _engine(ext).stats(ball)["folds"] == int((det <= 0).sum()) > 0
+    with bpy.context.temp_override(object=ball, active_object=ball):
+        bpy.ops.object.vpffd_unbind()
+    assert "vpffd_jacobian" not in ball.data.attributes

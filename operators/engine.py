@@ -102,15 +102,13 @@ class _Bound:
         return self.binding
 
 
-def _influence(obj, state):
-    s = obj.vpffd
+def _influence(s, state):
     w = state.weight
     return 1.0 - w if (s.invert_vertex_group and s.vertex_group) else w
 
 
-def _directions(obj, lat_matrix):
-    """(axes string, directions (m, 3) or None) in lattice space for the settings."""
-    s = obj.vpffd
+def _directions(s, lat_matrix):
+    """(axes string, directions (m, 3) or None) in lattice space for the settings `s`."""
     if s.axes == "NONE":
         return "", None
     if s.space == "LATTICE":
@@ -122,9 +120,8 @@ def _directions(obj, lat_matrix):
     return "", world @ inv3.T
 
 
-def _pin_targets(obj, state, lat_matrix):
+def _pin_targets(s, state, lat_matrix):
     """[(vertex, target in lattice space)] for the pinned vertices, following the pin Empty."""
-    s = obj.vpffd
     if s.pin_mode == "NONE" or len(state.pins) == 0:
         return []
     if s.pin_target is None:
@@ -137,11 +134,10 @@ def _pin_targets(obj, state, lat_matrix):
     return list(zip(state.pins.tolist(), targets))
 
 
-def _mobility(obj):
-    s = obj.vpffd
+def _mobility(s, lattice_object):
     if not s.mobility_group:
         return None
-    return meshio.lattice_group_weights(s.lattice, s.mobility_group)
+    return meshio.lattice_group_weights(lattice_object, s.mobility_group)
 
 
 def _zero_offsets(obj):
@@ -181,19 +177,22 @@ def update(obj, depsgraph, force=False):
 
         lat_eval = lat_ob.evaluated_get(depsgraph)
         ob_eval = obj.evaluated_get(depsgraph)
+        # Animated settings (volume scale, strength, ...) have this evaluation's values on the
+        # evaluated object only: a render's depsgraph does not write them back to the original.
+        s = ob_eval.vpffd
         lattice, grid = _lattice_model(lat_eval.data)
         points = meshio.lattice_points(lat_eval.data, "co_deform")
         M_lat = meshio.matrix(lat_eval.matrix_world)
         L = np.linalg.inv(M_lat) @ meshio.matrix(ob_eval.matrix_world)
-        axes, directions = _directions(obj, M_lat)
+        axes, directions = _directions(s, M_lat)
         state = _cache.get(uid)
         if state is None or state.edited(mesh):
             # First use (e.g. after loading), or the vertices were moved in Edit Mode: embed the
             # mesh's coordinates as they are now, as the Lattice modifier would.
             state = _cache[uid] = _Bound(obj)
-        influence = _influence(obj, state)
-        pins = _pin_targets(obj, state, M_lat)
-        mobility = _mobility(obj)
+        influence = _influence(s, state)
+        pins = _pin_targets(s, state, M_lat)
+        mobility = _mobility(s, lat_ob)
         signature = (points.tobytes(), L.tobytes(), grid.tobytes(), axes, s.space, s.strength,
                      s.volume_scale, s.use_islands, s.invert_vertex_group, repr(pins), s.use_fold_attribute,
                      None if mobility is None else mobility.tobytes())

@@ -5,9 +5,9 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import demos, handlers, ops, overlay, panel, properties
+from . import bake, demos, handlers, ops, overlay, panel, properties
 
-classes = properties.classes + ops.classes + panel.classes + demos.classes
+classes = properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 

@@ -367,9 +367,14 @@ def _inside_count(state, lattice):
 
 
 def unbind(obj):
-    """Remove the VP-FFD modifier and attributes; the mesh's coordinates were never changed."""
+    """Remove the VP-FFD modifier (and a baked cache's Mesh Cache modifier) and the attributes;
+    the mesh's coordinates were never changed."""
+    from .bake import find_cache
     mesh = obj.data
     modifier.remove(obj)
+    cache = find_cache(obj)
+    if cache is not None:
+        obj.modifiers.remove(cache)
     meshio.remove_offsets(mesh)
     for name in (WEIGHT_ATTRIBUTE, PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE):
         attr = mesh.attributes.get(name)

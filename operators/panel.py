@@ -1,7 +1,7 @@
 """The VP-FFD panel, in the Modifier properties next to the modifier stack."""
 import bpy
 
-from . import engine, modifier
+from . import bake, engine, modifier
 
 
 class OBJECT_PT_vpffd(bpy.types.Panel):
@@ -52,14 +52,15 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
             row.operator("object.vpffd_bind", text="Re-bind", icon="FILE_REFRESH")
             row.operator("object.vpffd_apply", icon="CHECKMARK")
             row.operator("object.vpffd_unbind", icon="X")
-            if modifier.find(ob) is not None:
-                layout.prop(s, "enabled")
+            if modifier.find(ob) is not None and not bake.using_cache(ob):
+                layout.prop(s, "enabled")     # on the cache, "Use Live" switches back instead
             layout.prop(s, "show_overlay")
             layout.prop(s, "use_fold_attribute")
         else:
             row.operator("object.vpffd_bind", icon="MOD_LATTICE")
         if bound:
             self.draw_status(layout, ob)
+            bake.draw_bake(layout, ob)
 
     @staticmethod
     def draw_status(layout, ob):

@@ -12,10 +12,11 @@ from .bases import INTERPOLATIONS
 from .binding import Binding, bind
 from .jacobian import jacobian_det
 from .lattice import Lattice
+from .pointcache import read_mdd, read_pc2, write_mdd, write_pc2
 from .shapes import box, icosphere
 from .solve import Solution
 from .volume import signed_volume
 
 __all__ = ["INTERPOLATIONS", "Binding", "Lattice", "Solution", "bind", "box", "icosphere",
-           "jacobian_det", "signed_volume"]
+           "jacobian_det", "read_mdd", "read_pc2", "signed_volume", "write_mdd", "write_pc2"]
 __version__ = "0.1.0"

@@ -62,7 +62,7 @@ def _lattice_object(scene, name, shape, half_extent, location):
     return ob
 
 
-def _label(scene, text, location, size=0.22):
+def _label(scene, text, location, size=0.3):
     curve = bpy.data.curves.new(f"Label {text}", "FONT")
     curve.body = text
     curve.align_x = "CENTER"
@@ -99,6 +99,9 @@ def _stage(scene, camera_location, camera_target, frames, ground_size):
     scene.display.shading.show_shadows = True
     scene.render.resolution_x, scene.render.resolution_y = 640, 360
     scene.render.film_transparent = False
+    world = bpy.data.worlds.get("VP-FFD Demo World") or bpy.data.worlds.new("VP-FFD Demo World")
+    world.color = (0.9, 0.9, 0.92)
+    scene.world = world
     scene.render.use_lock_interface = True
 
 
@@ -106,7 +109,7 @@ def _look_rotation(direction):
     """Euler angles that point a camera (looking down its -Z) along `direction`."""
     x, y, z = direction
     pitch = math.atan2(math.hypot(x, y), -z)
-    yaw = math.atan2(y, x) + math.pi / 2
+    yaw = math.atan2(y, x) - math.pi / 2
     return (pitch, 0.0, yaw)
 
 
@@ -188,10 +191,10 @@ def build_bouncing_ball(scene, depsgraph=None):
     """Two balls falling side by side: a plain Lattice modifier (left) and VP-FFD correcting in
     the horizontal directions (right), so the squash spreads sideways (paper section 5.1).
     Returns {'plain': ball, 'vpffd': ball, 'lattices': [...]}."""
-    plain, plain_lat = _ball_rig(scene, "Ball Lattice Modifier", -0.9, PLAIN_COLOUR)
-    ours, our_lat = _ball_rig(scene, "Ball VP-FFD XY", 0.9, VPFFD_COLOUR)
-    _label(scene, "Lattice modifier", (-0.9, 0.0, 3.4))
-    _label(scene, "VP-FFD (XY)", (0.9, 0.0, 3.4))
+    plain, plain_lat = _ball_rig(scene, "Ball Lattice Modifier", -1.2, PLAIN_COLOUR)
+    ours, our_lat = _ball_rig(scene, "Ball VP-FFD XY", 1.2, VPFFD_COLOUR)
+    _label(scene, "Lattice modifier", (-1.2, 0.0, 3.4))
+    _label(scene, "VP-FFD (XY)", (1.2, 0.0, 3.4))
     _stage(scene, camera_location=(0.0, -8.5, 2.2), camera_target=(0.0, 0.0, 1.5), frames=BALL_FRAMES,
            ground_size=5.0)
     _plain(plain, plain_lat)
@@ -207,7 +210,7 @@ def _cube_rig(scene, name, x, colour):
     """A subdivided cube (6,146 vertices, as the paper's) in a 4x4x8 lattice that a Simple Deform
     modifier twists from 0 to 360 degrees about Z."""
     half = 0.55
-    lat = _lattice_object(scene, f"{name} Lattice", (4, 4, 8), (half, half, half), (x, 0.0, 0.6))
+    lat = _lattice_object(scene, f"{name} Lattice", (4, 4, 8), (half, half, half), (x, 0.0, 0.9))
     verts, tris = vp.box(32, 1.0)
     cube = _mesh_object(scene, name, verts, tris, _material(f"VP-FFD Demo {name}", colour))
     cube.parent = lat
@@ -224,12 +227,12 @@ def build_twisting_cube(scene, depsgraph=None):
     """Three cubes twisted by their lattices (paper Figure 6): a plain Lattice modifier, VP-FFD
     correcting in XY (top and bottom stay flat) and VP-FFD correcting in Z.
     Returns {'plain': cube, 'vpffd_xy': cube, 'vpffd_z': cube, 'lattices': [...]}."""
-    plain, plain_lat = _cube_rig(scene, "Cube Lattice Modifier", -1.8, PLAIN_COLOUR)
+    plain, plain_lat = _cube_rig(scene, "Cube Lattice Modifier", -2.0, PLAIN_COLOUR)
     xy, xy_lat = _cube_rig(scene, "Cube VP-FFD XY", 0.0, VPFFD_COLOUR)
-    z, z_lat = _cube_rig(scene, "Cube VP-FFD Z", 1.8, VPFFD_COLOUR_2)
-    for text, x in (("Lattice modifier", -1.8), ("VP-FFD (XY)", 0.0), ("VP-FFD (Z)", 1.8)):
-        _label(scene, text, (x, 0.0, 1.55))
-    _stage(scene, camera_location=(0.0, -7.5, 3.0), camera_target=(0.0, 0.0, 0.55), frames=CUBE_FRAMES,
+    z, z_lat = _cube_rig(scene, "Cube VP-FFD Z", 2.0, VPFFD_COLOUR_2)
+    for text, x in (("Lattice modifier", -2.0), ("VP-FFD (XY)", 0.0), ("VP-FFD (Z)", 2.0)):
+        _label(scene, text, (x, 0.0, 1.85))
+    _stage(scene, camera_location=(0.0, -7.5, 3.3), camera_target=(0.0, 0.0, 0.85), frames=CUBE_FRAMES,
            ground_size=6.0)
     _plain(plain, plain_lat)
     scene.frame_set(scene.frame_start)

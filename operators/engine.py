@@ -30,8 +30,15 @@ def stats(obj):
     return _stats.get(obj.session_uid, {})
 
 
+_reported = {}  # object session_uid -> last error printed, so a failing frame range logs once
+
+
 def _set_stats(obj, **values):
     _stats[obj.session_uid] = values
+    error = values.get("error")
+    if error and _reported.get(obj.session_uid) != error:
+        print(f"VP-FFD: {obj.name}: {error}")  # the console and farm logs, once per new problem
+    _reported[obj.session_uid] = error
     return values
 
 
@@ -40,9 +47,10 @@ def forget(obj=None):
     if obj is None:
         _cache.clear()
         _stats.clear()
+        _reported.clear()
     else:
-        _cache.pop(obj.session_uid, None)
-        _stats.pop(obj.session_uid, None)
+        for table in (_cache, _stats, _reported):
+            table.pop(obj.session_uid, None)
 
 
 def _float_attribute(mesh, name, values=None):
@@ -244,7 +252,6 @@ def update(obj, depsgraph, force=False):
         return True
     except Exception as exc:  # a handler must never raise into Blender
         _set_stats(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
-        print(f"VP-FFD: {obj.name}: {exc}")
         return False
 
 

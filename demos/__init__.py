@@ -1,0 +1,1 @@
+"""The demo scenes rendered headless: `./dev demo` runs `python -m demos.render_demos`."""

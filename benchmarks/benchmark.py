@@ -178,6 +178,22 @@ def _extension_engine():
     return _EXTENSION["engine"]
 
 
+def gpu_figures(sizes, repeat):
+    """CPU and GPU (compute shader) XYZ solve side by side, float32, same process."""
+    from benchmarks import gpu_benchmark as gbm
+
+    gb = gbm.load_gpu_backend()
+    init_ok, init_why = gbm.init_gpu()
+    ok, why = gb.available()
+    out = {"available": ok, "reason": why if ok else f"{why} (GPU init: {init_why})",
+           "renderer": gb.renderer(), "software_renderer": gb.is_software_renderer(), "rows": []}
+    log(f"GPU path: {out['reason']}")
+    if ok:
+        for sub in sizes:
+            out["rows"].append(gbm.bench_size(gb, sub, "XYZ", max(3, repeat // 2)))
+    return out
+
+
 def _harness():
     tests = os.path.join(_ROOT, "tests")
     if tests not in sys.path:
@@ -417,6 +433,18 @@ def markdown(report):
                       f"against {fs['plain_frame_set_ms_median']:.1f} ms with a plain Lattice modifier "
                       f"({fs['frame_set_ratio']:.2f}x); the extension's own work beyond the core solve "
                       f"({fs['vpffd_core_solve_ms_median']:.1f} ms) is {fs['handler_overhead_ms_median']:.1f} ms."]
+    gpu = report.get("gpu")
+    if gpu and gpu["rows"]:
+        kind = "software OpenGL, not a GPU" if gpu["software_renderer"] else "a hardware GPU"
+        lines += ["", f"GPU path (compute shaders) on this machine's renderer, {gpu['renderer']} ({kind}), "
+                  "XYZ solve, float32:", "",
+                  "| vertices | CPU solve | GPU solve | GPU / CPU | GPU upload (once) |", "|---:|---:|---:|---:|---:|"]
+        for row in gpu["rows"]:
+            lines.append(f"| {row['n_verts']:,} | {row['cpu_solve_ms_median']:.1f} ms | "
+                         f"{row['gpu_solve_ms_median']:.1f} ms | {row['gpu_over_cpu']:.1f}x | "
+                         f"{row['gpu_upload_ms']:.0f} ms |")
+    elif gpu:
+        lines += ["", f"GPU path not measured: {gpu['reason']}"]
     lin = report["summary"]["linearity"]
     if "fitted_exponent" in lin["float32"]["solve_xyz"]:
         lines += ["", f"Solve time grows as V^{lin['float32']['solve_xyz']['fitted_exponent']:.2f} (float32) and "
@@ -445,6 +473,7 @@ def main(argv=None):
     ap.add_argument("--out", help="also write the JSON report to this file")
     ap.add_argument("--no-blender", action="store_true", help="skip Blender's Lattice modifier (no bpy needed)")
     ap.add_argument("--update-readme", action="store_true", help="rewrite README.md's benchmark table")
+    ap.add_argument("--no-gpu", action="store_true", help="skip the GPU (compute shader) path")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     if not sizes or args.repeat < 1:
@@ -463,6 +492,7 @@ def main(argv=None):
     for _, dt in DTYPES:
         vp.bind(wlat, wv, wf, dtype=dt).solve(deformed_points(wlat), axes="XYZ")
     results = [bench_size(s, args.repeat, use_blender) for s in sizes]
+    gpu = gpu_figures([s for s in sizes if s >= 7], args.repeat) if use_blender and not args.no_gpu else None
     report = {
         "benchmark": "vpffd",
         "lattice": {"shape": list(LATTICE_SHAPE), "interpolation": "BSPLINE", "bounds": [[-0.5] * 3, [0.5] * 3],
@@ -471,6 +501,7 @@ def main(argv=None):
         "environment": env,
         "results": results,
         "summary": summarize(results, use_blender),
+        "gpu": gpu,
         "total_seconds": None,
     }
     report["total_seconds"] = time.perf_counter() - t0

@@ -5,7 +5,7 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import bake, demos, handlers, ops, overlay, panel, properties
+from . import bake, demos, gpu_backend, handlers, ops, overlay, panel, properties
 
 classes = properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
 
@@ -21,6 +21,7 @@ def register():
 
 
 def unregister():
+    gpu_backend.release()
     overlay.unregister()
     demos.unregister()
     handlers.unregister()

@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 
 from .. import vpffd_addon as vp
-from . import meshio, modifier
+from . import gpu_backend, meshio, modifier
 
 WEIGHT_ATTRIBUTE = "vpffd_weight"   # vertex-group weight at bind time (1 without a group)
 PIN_ATTRIBUTE = "vpffd_pin"         # 1 for pinned vertices
@@ -44,6 +44,10 @@ def _set_stats(obj, **values):
 
 def forget(obj=None):
     """Drop cached bindings (all, or one object's)."""
+    states = list(_cache.values()) if obj is None else [_cache.get(obj.session_uid)]
+    for state in states:
+        if state is not None:
+            state.free()
     if obj is None:
         _cache.clear()
         _stats.clear()
@@ -94,6 +98,12 @@ class _Bound:
         self.key = None
         self.signature = None
         self.overlay = None
+        self.gpu = None        # GPUSolver for the current binding, made on first GPU use
+
+    def free(self):
+        if self.gpu is not None:
+            self.gpu.free()
+            self.gpu = None
 
     def edited(self, mesh):
         """True when the mesh's own coordinates differ from those this state was built from."""
@@ -105,6 +115,7 @@ class _Bound:
                influence.tobytes())
         if key != self.key:
             verts = meshio.transform(self.rest, L)
+            self.free()
             self.binding = vp.bind(lattice, verts, self.tris, influence=influence, dtype=np.float32)
             self.key, self.L = key, L
         return self.binding
@@ -213,10 +224,12 @@ def update(obj, depsgraph, force=False):
         # Strength scales every displacement alike, so it scales the lattice offsets instead of
         # the binding's weights (no re-bind when it is animated).
         P = grid + s.strength * (points - grid)
+        backend = "CPU"
+        backend_reason = ""
         if axes or directions is not None or pins:
-            sol = binding.solve(P, axes=axes, directions=directions, volume_scale=s.volume_scale,
-                                preserve_volume=bool(axes or directions is not None),
-                                mobility=mobility, pins=pins, islands=s.use_islands)
+            options = dict(axes=axes, directions=directions, pins=pins, mobility=mobility,
+                           islands=s.use_islands, preserve_volume=bool(axes or directions is not None))
+            sol, backend, backend_reason = _solve(state, binding, P, s, options)
             verts, volume, plain, warnings = sol.verts, sol.volume, sol.plain_volume, list(sol.warnings)
             used_points = sol.points
         else:
@@ -235,7 +248,7 @@ def update(obj, depsgraph, force=False):
 
         rest_volume = binding.rest_volume
         info = dict(error=None, seconds=seconds, core_seconds=core_seconds, warnings=warnings,
-                    rest_volume=rest_volume,
+                    rest_volume=rest_volume, backend=backend, backend_reason=backend_reason,
                     closed=binding.is_closed, n_verts=binding.n_verts, folds=None)
         if volume is None:  # no correction: measure what the plain deformation does
             volume = plain = vp.signed_volume(verts, state.tris, origin=lattice.centre)
@@ -253,6 +266,24 @@ def update(obj, depsgraph, force=False):
     except Exception as exc:  # a handler must never raise into Blender
         _set_stats(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
         return False
+
+
+def _solve(state, binding, P, s, options):
+    """(Solution, "GPU" or "CPU", why) for this frame: the GPU path when the settings' backend
+    and the machine allow it, else (or when it fails) the CPU path."""
+    use_gpu, why = gpu_backend.choose(s.backend, binding.n_verts, options, binding)
+    if use_gpu:
+        try:
+            if state.gpu is None:
+                state.gpu = gpu_backend.GPUSolver(binding)
+            return state.gpu.solve(P, axes=options["axes"], volume_scale=s.volume_scale), "GPU", why
+        except gpu_backend.GPUUnavailable as exc:
+            state.free()
+            why = f"the GPU failed, using the CPU: {exc}"
+    sol = binding.solve(P, axes=options["axes"], directions=options["directions"],
+                        volume_scale=s.volume_scale, preserve_volume=options["preserve_volume"],
+                        mobility=options["mobility"], pins=options["pins"], islands=options["islands"])
+    return sol, "CPU", why
 
 
 def overlay_geometry(obj):

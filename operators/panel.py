@@ -37,6 +37,7 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
         else:
             col.prop(s, "mobility_group")
         col.prop(s, "use_islands")
+        col.prop(s, "backend")
 
         col = layout.column()
         col.prop(s, "pin_mode")
@@ -72,7 +73,10 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
             box.label(text=f"Volume {info['volume_percent']:.4f}% of rest "
                            f"(plain lattice: {info['plain_percent']:.2f}%)")
         if "seconds" in info:
-            box.label(text=f"Solve {1e3 * info['seconds']:.1f} ms, {info['n_verts']:,} vertices")
+            box.label(text=f"Solve {1e3 * info['seconds']:.1f} ms on the {info.get('backend', 'CPU')}, "
+                           f"{info['n_verts']:,} vertices")
+        if info.get("backend_reason") and ob.vpffd.backend != "CPU":
+            box.label(text=info["backend_reason"], icon="INFO")
         if info.get("closed") is False:
             box.label(text="Open mesh: volume measured about the lattice centre", icon="INFO")
         if info.get("folds"):

@@ -106,6 +106,14 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Show the VP-FFD modifier in viewport and render")
     is_bound: BoolProperty(name="Bound", default=False, options={"HIDDEN"},
                            description="Whether the mesh is bound to its lattice")
+    backend: EnumProperty(
+        name="Backend", default="AUTO", update=_settings_changed,
+        items=[("AUTO", "Auto", "The GPU when a hardware GPU context exists, the mesh is large enough "
+                                "to gain and the settings allow it; otherwise the CPU"),
+               ("CPU", "CPU", "Always solve on the CPU (NumPy)"),
+               ("GPU", "GPU", "Solve with compute shaders whenever possible (falls back to the CPU, "
+                              "saying why, when it cannot)")],
+        description="Where the per-frame solve runs")
     use_fold_attribute: BoolProperty(
         name="Fold Attribute", default=False, update=_settings_changed,
         description="Write the deformation's Jacobian determinant per vertex to the attribute "

@@ -1,0 +1,633 @@
+"""GPU path of the volume-preserving solve: Blender's `gpu` compute shaders (issue 6).
+
+The same sequential per-direction closed form as `vpffd_addon.solve` (lattice-axis directions,
+one volume row, no pins, no mobility, islands off), run as compute-shader kernels on data uploaded
+once per binding. `gpu` is imported lazily inside functions, never at import or register time.
+
+Data (all textures, 4096 texels wide, row-major; integers are stored exactly as floats < 2**24,
+because Python's `GPUTexture` only accepts FLOAT data):
+
+- per slot: ``x0`` (RGBA32F), weights ``wuv`` (slot * Kuv + k) and ``ww`` (slot * Kw + k, influence
+  folded in), ``s`` (influence), the one-ring CSR ``ring_start`` (n_slots + 1) and ``ring``
+  (RG32F: the two other corners (m, n) of every incident face, in cyclic order);
+- per block: ``block_run``; per run: ``run_idx`` (Kw * Kuv control points);
+- per control point: a CSR ``cp_start`` / ``cp_piece`` over the (block, tap) pieces it receives;
+- per vertex: ``slot``.
+
+Kernels (local size 256, no atomics anywhere, every sum in a fixed order):
+
+- ``forward``: X_c = x0_c + S B D_c for one component c (the standard FFD), slot-parallel;
+- ``gradient``: g = dV/dx_e per slot, a gather over the slot's incident faces (one-ring CSR) of the
+  per-face terms ``(p_m q_n - q_m p_n) / 6``;
+- ``reduce_slots``: per work group, tree sums of ``x0_e * g`` and ``|g s|`` (volume and flux terms);
+- ``pieces``: per (block, tap) the dot product of the block's weights with g (64 slots at most);
+- ``alpha``: per control point, the sum of its pieces in CSR order (the transposed product);
+- ``reduce_points``: tree sums of ``alpha^2`` and ``alpha * D_e``;
+- ``update``: D_e += lambda * alpha (the offset update), in place;
+- ``gather``: the final coordinates per vertex, ``X[slot[v]]``, one RGBA32F read-back.
+
+What crosses the bus per frame: up, the N control-point offsets (one RGBA32F texture); down, two
+partial-sum arrays per direction (one float pair per 256 slots / control points; the last level of
+the tree sum runs in float64 on the CPU, which keeps the volume exact to float32 rounding of the
+terms), then the final coordinates (V x 4 floats) and the N corrected offsets. The tiny k x k
+closed form (here k = 1: lambda = r / |alpha|^2) runs on the CPU in float64.
+
+Read-back: ``np.array(tex.read())`` and ``np.asarray(memoryview(buf))`` give WRONG values in Blender
+4.2-5.0 (NOTES.md section 6); `read_texture` flattens the buffer first, which is right and zero-copy.
+"""
+import math
+import threading
+import time
+import warnings
+
+import numpy as np
+
+try:
+    from ..vpffd_addon import solve as _vsolve
+    from ..vpffd_addon import tolerances as _tol
+except ImportError:  # loaded outside the extension package (tests, benchmarks)
+    from vpffd_addon import solve as _vsolve
+    from vpffd_addon import tolerances as _tol
+
+#: Texture width (texels); indices map to (i % TW, i // TW).
+TW = 4096
+TW_LOG = 12
+#: Work-group size of every kernel.
+GROUP = 256
+#: Integers travel as floats: exact below 2**24.
+MAX_INDEX = 1 << 24
+#: Auto uses the GPU from this many vertices on (below, uploads and dispatch overhead dominate).
+AUTO_MIN_VERTS = 50000
+#: Renderers on which the GPU path is slower than NumPy (software rasterisers).
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer", "lavapipe")
+
+
+class GPUUnavailable(RuntimeError):
+    """The GPU path cannot run here (the message says why); the caller falls back to the CPU."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Availability and backend choice
+
+
+def _gpu():
+    try:
+        import gpu  # noqa: F401  (lazy: never at import or register time)
+    except Exception as exc:  # pragma: no cover - bpy without gpu
+        raise GPUUnavailable(f"the gpu module cannot be imported ({exc})") from None
+    return gpu
+
+
+def _check_context():
+    """Raise GPUUnavailable unless GPU calls work in this thread now."""
+    if threading.current_thread() is not threading.main_thread():
+        raise GPUUnavailable("GPU calls are only made from Blender's main thread")
+    gpu = _gpu()
+    try:
+        gpu.types.GPUTexture((1, 1), format="R32F")
+    except Exception as exc:
+        raise GPUUnavailable(f"no GPU context ({exc})") from None
+    support = getattr(gpu.capabilities, "compute_shader_support_get", None)
+    try:
+        with warnings.catch_warnings():  # deprecated (always true) from 4.x on
+            warnings.simplefilter("ignore")
+            has_compute = support is None or support()
+        if not has_compute:
+            raise GPUUnavailable("this GPU has no compute-shader support")
+    except GPUUnavailable:
+        raise
+    except Exception:
+        pass
+    if not hasattr(gpu, "compute") or not hasattr(gpu.types, "GPUShaderCreateInfo"):
+        raise GPUUnavailable("this Blender has no Python compute shaders (needs 4.2 or newer)")
+    return gpu
+
+
+def available():
+    """(ok, reason): whether the GPU path can run here now. Never raises.
+
+    Fails in background mode before a GPU backend exists ("GPU functions for drawing are not
+    available in background mode"), without compute support, off the main thread, or when the
+    kernels do not compile; the reason says which."""
+    try:
+        _check_context()
+        _kernels(64, 4, 16)
+        return True, "GPU compute shaders are available (" + renderer() + ")"
+    except GPUUnavailable as exc:
+        return False, str(exc)
+    except Exception as exc:  # never raise from here
+        return False, f"GPU check failed: {type(exc).__name__}: {exc}"
+
+
+def renderer():
+    """The GPU renderer's name, or '' when unknown. Never raises."""
+    try:
+        return str(_gpu().platform.renderer_get())
+    except Exception:
+        return ""
+
+
+def is_software_renderer():
+    """True on software OpenGL (Mesa llvmpipe and the like), where the GPU path is slow."""
+    name = renderer().lower()
+    return any(s in name for s in SOFTWARE_RENDERERS)
+
+
+def supports(options=None, binding=None):
+    """(ok, reason): whether the GPU path implements these solve options (and this binding).
+
+    options: a dict with any of axes, directions, pins, mobility, islands, preserve_volume.
+    The GPU path does lattice-axis directions only (a string of distinct letters from "XYZ"),
+    one volume row (islands off), no pins, no mobility, preserve_volume on."""
+    o = dict(options or {})
+    if o.get("directions") is not None:
+        return False, "the GPU path corrects along lattice axes only (world directions use the CPU)"
+    if o.get("pins"):
+        return False, "pins are solved on the CPU"
+    if o.get("mobility") is not None:
+        return False, "control-point mobility is solved on the CPU"
+    if o.get("islands"):
+        return False, "per-island volumes are solved on the CPU"
+    if not o.get("preserve_volume", True):
+        return False, "without volume preservation the CPU path is used"
+    axes = o.get("axes", "XYZ")
+    if not axes:
+        return False, "no correction axes"
+    try:
+        _vsolve.parse_directions(axes, None)
+    except ValueError as exc:
+        return False, str(exc)
+    if binding is not None:
+        return _binding_fits(binding)
+    return True, "supported"
+
+
+def _binding_fits(b):
+    Kw, Kuv = b.ww.shape[1], b.wuv.shape[1]
+    n_slots = b.x0.shape[1]
+    sizes = {"weights": n_slots * Kuv, "one-ring": 3 * b.n_faces, "pieces": b.ww.shape[0] * Kw * Kuv}
+    for what, n in sizes.items():
+        if n >= MAX_INDEX or -(-n // TW) > 16384:
+            return False, f"the binding is too large for the GPU path ({what}: {n} entries)"
+    if b.lattice.n_points >= MAX_INDEX:
+        return False, "too many control points for the GPU path"
+    return True, "supported"
+
+
+def choose(backend, n_verts, options=None, binding=None):
+    """(use_gpu, reason) for a backend setting 'AUTO', 'CPU' or 'GPU'. Never raises.
+
+    AUTO: the GPU when it is available, supports the options, the mesh has at least
+    AUTO_MIN_VERTS vertices, and the renderer is a real GPU (not software OpenGL).
+    GPU: the GPU whenever it can run; otherwise the CPU, with the reason."""
+    backend = str(backend).upper()
+    if backend == "CPU":
+        return False, "CPU chosen"
+    ok, why = supports(options, binding)
+    if not ok:
+        return False, why
+    if backend == "AUTO" and n_verts < AUTO_MIN_VERTS:
+        return False, f"Auto: {n_verts} vertices (< {AUTO_MIN_VERTS}) are faster on the CPU"
+    ok, why = available()
+    if not ok:
+        return False, why
+    if backend == "AUTO" and is_software_renderer():
+        return False, f"Auto: software OpenGL ({renderer()}) is slower than the CPU path"
+    return True, why
+
+
+# ------------------------------------------------------------------------------------------------
+# Kernels
+
+_HEADER = f"""
+#define TW {TW}
+#define TW_LOG {TW_LOG}
+#define GROUP {GROUP}
+#define AT(i) ivec2((i) & (TW - 1), (i) >> TW_LOG)
+#define FETCH(t, i) texelFetch(t, AT(i), 0)
+#define IFETCH(t, i) int(texelFetch(t, AT(i), 0).r)
+int group_index() {{ return int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x); }}
+int global_index() {{ return group_index() * GROUP + int(gl_LocalInvocationID.x); }}
+"""
+
+# Each kernel: (samplers, images, push constants, body). Sampler/image slots are numbered
+# distinctly within a kernel.
+_KERNELS = {
+    "forward": (
+        ("x0", "wuv", "ww", "block_run", "run_idx", "disp"), (("x_out", "R32F", "WRITE"),),
+        (("INT", "n"), ("INT", "comp")), """
+void main() {
+  int i = global_index();
+  if (i >= n) return;
+  int run = IFETCH(block_run, i / BS);
+  int base = run * KW * KUV;
+  float acc = 0.0;
+  for (int kw = 0; kw < KW; kw++) {
+    float inner = 0.0;
+    for (int k = 0; k < KUV; k++) {
+      int p = IFETCH(run_idx, base + kw * KUV + k);
+      inner += FETCH(wuv, i * KUV + k).r * FETCH(disp, p)[comp];
+    }
+    acc += FETCH(ww, i * KW + kw).r * inner;
+  }
+  imageStore(x_out, AT(i), vec4(FETCH(x0, i)[comp] + acc));
+}"""),
+    "gradient": (
+        ("xp", "xq", "ring_start", "ring"), (("g_out", "R32F", "WRITE"),), (("INT", "n"),), """
+void main() {
+  int i = global_index();
+  if (i >= n) return;
+  int e0 = IFETCH(ring_start, i), e1 = IFETCH(ring_start, i + 1);
+  float g = 0.0;
+  for (int e = e0; e < e1; e++) {
+    vec4 mn = FETCH(ring, e);
+    int m = int(mn.r), k = int(mn.g);
+    g += FETCH(xp, m).r * FETCH(xq, k).r - FETCH(xq, m).r * FETCH(xp, k).r;
+  }
+  imageStore(g_out, AT(i), vec4(g * (1.0 / 6.0)));
+}"""),
+    "reduce_slots": (
+        ("x0", "g", "s"), (("partial", "RGBA32F", "WRITE"),), (("INT", "n"), ("INT", "comp")), """
+shared vec2 acc[GROUP];
+void main() {
+  int i = global_index();
+  uint t = gl_LocalInvocationID.x;
+  vec2 v = vec2(0.0);
+  if (i < n) {
+    float gv = FETCH(g, i).r;
+    v = vec2(FETCH(x0, i)[comp] * gv, abs(gv * FETCH(s, i).r));
+  }
+  acc[t] = v;
+  barrier();
+  for (uint h = GROUP / 2u; h > 0u; h >>= 1) {
+    if (t < h) acc[t] += acc[t + h];
+    barrier();
+  }
+  if (t == 0u) imageStore(partial, AT(group_index()), vec4(acc[0], 0.0, 0.0));
+}"""),
+    "pieces": (
+        ("wuv", "ww", "g"), (("piece", "R32F", "WRITE"),), (("INT", "n"),), """
+void main() {
+  int i = global_index();
+  if (i >= n) return;
+  int blk = i / (KW * KUV), e = i % (KW * KUV);
+  int kw = e / KUV, k = e % KUV;
+  float acc = 0.0;
+  for (int p = 0; p < BS; p++) {
+    int slot = blk * BS + p;
+    acc += FETCH(ww, slot * KW + kw).r * FETCH(wuv, slot * KUV + k).r * FETCH(g, slot).r;
+  }
+  imageStore(piece, AT(i), vec4(acc));
+}"""),
+    "alpha": (
+        ("cp_start", "cp_piece", "piece"), (("alpha_out", "R32F", "WRITE"),), (("INT", "n"),), """
+void main() {
+  int i = global_index();
+  if (i >= n) return;
+  int j0 = IFETCH(cp_start, i), j1 = IFETCH(cp_start, i + 1);
+  float acc = 0.0;
+  for (int j = j0; j < j1; j++) acc += FETCH(piece, IFETCH(cp_piece, j)).r;
+  imageStore(alpha_out, AT(i), vec4(acc));
+}"""),
+    "reduce_points": (
+        ("alpha", "disp"), (("partial", "RGBA32F", "WRITE"),), (("INT", "n"), ("INT", "comp")), """
+shared vec2 acc[GROUP];
+void main() {
+  int i = global_index();
+  uint t = gl_LocalInvocationID.x;
+  vec2 v = vec2(0.0);
+  if (i < n) {
+    float a = FETCH(alpha, i).r;
+    v = vec2(a * a, a * FETCH(disp, i)[comp]);
+  }
+  acc[t] = v;
+  barrier();
+  for (uint h = GROUP / 2u; h > 0u; h >>= 1) {
+    if (t < h) acc[t] += acc[t + h];
+    barrier();
+  }
+  if (t == 0u) imageStore(partial, AT(group_index()), vec4(acc[0], 0.0, 0.0));
+}"""),
+    "update": (
+        ("alpha",), (("disp_io", "RGBA32F", "READ_WRITE"),), (("INT", "n"), ("INT", "comp"), ("FLOAT", "lam")), """
+void main() {
+  int i = global_index();
+  if (i >= n) return;
+  vec4 d = imageLoad(disp_io, AT(i));
+  d[comp] += lam * FETCH(alpha, i).r;
+  imageStore(disp_io, AT(i), d);
+}"""),
+    "gather": (
+        ("slot", "x_0", "x_1", "x_2"), (("verts_out", "RGBA32F", "WRITE"),), (("INT", "n"),), """
+void main() {
+  int i = global_index();
+  if (i >= n) return;
+  int s = IFETCH(slot, i);
+  imageStore(verts_out, AT(i), vec4(FETCH(x_0, s).r, FETCH(x_1, s).r, FETCH(x_2, s).r, 0.0));
+}"""),
+}
+
+_kernel_cache = {}
+
+
+def _kernels(bs, kw, kuv):
+    """The compiled kernels for a block size and tap counts (cached). Raises GPUUnavailable."""
+    key = (bs, kw, kuv)
+    if key in _kernel_cache:
+        return _kernel_cache[key]
+    gpu = _gpu()
+    defines = f"#define BS {bs}\n#define KW {kw}\n#define KUV {kuv}\n"
+    out = {}
+    for name, (samplers, images, consts, body) in _KERNELS.items():
+        try:
+            info = gpu.types.GPUShaderCreateInfo()
+            slot = 0
+            for s in samplers:
+                info.sampler(slot, "FLOAT_2D", s)
+                slot += 1
+            for img, fmt, access in images:
+                quals = {"READ", "WRITE"} if access == "READ_WRITE" else {access}
+                info.image(slot, fmt, "FLOAT_2D", img, qualifiers=quals)
+                slot += 1
+            for typ, cname in consts:
+                info.push_constant(typ, cname)
+            info.local_group_size(GROUP, 1, 1)
+            info.compute_source(defines + _HEADER + body)
+            out[name] = gpu.shader.create_from_info(info)
+        except Exception as exc:
+            raise GPUUnavailable(f"the GPU kernel '{name}' did not compile ({exc})") from None
+    _kernel_cache[key] = out
+    return out
+
+
+def release():
+    """Drop the compiled kernels (call from unregister, on the main thread). Never raises."""
+    _kernel_cache.clear()
+
+
+# ------------------------------------------------------------------------------------------------
+# Textures
+
+
+def _rows(n):
+    return max(1, -(-int(n) // TW))
+
+
+def make_texture(values, channels=1):
+    """A TW-wide float texture holding `values` (n,) or (n, channels) row-major, zero-padded."""
+    gpu = _gpu()
+    a = np.asarray(values, dtype=np.float32).reshape(-1, channels)
+    h = _rows(len(a))
+    data = np.zeros((h * TW, channels), np.float32)
+    data[:len(a)] = a
+    fmt = {1: "R32F", 2: "RG32F", 4: "RGBA32F"}[channels]
+    buf = gpu.types.Buffer("FLOAT", data.size, data.ravel())
+    return gpu.types.GPUTexture((TW, h), format=fmt, data=buf)
+
+
+def empty_texture(n, channels=1):
+    gpu = _gpu()
+    fmt = {1: "R32F", 2: "RG32F", 4: "RGBA32F"}[channels]
+    return gpu.types.GPUTexture((TW, _rows(n)), format=fmt)
+
+
+def read_texture(tex, n, channels):
+    """The first n texels of a float texture as a (n, channels) float32 array, without Python loops.
+
+    `np.array(tex.read())` is WRONG in Blender 4.2-5.0; flattening the Buffer's dimensions first
+    and viewing it with np.frombuffer is right (and zero-copy)."""
+    buf = tex.read()
+    buf.dimensions = tex.width * tex.height * channels
+    return np.frombuffer(buf, np.float32).reshape(-1, channels)[:n]
+
+
+def _dispatch(shader, n):
+    gpu = _gpu()
+    groups = max(1, -(-int(n) // GROUP))
+    gx = min(groups, 4096)
+    gpu.compute.dispatch(shader, gx, -(-groups // gx), 1)
+    return groups
+
+
+def _pad_to_vec4(a):
+    out = np.zeros((len(a), 4), np.float32)
+    out[:, :a.shape[1]] = a
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Solver
+
+
+class GPUSolver:
+    """A binding uploaded to the GPU once; `solve` runs the per-frame correction there.
+
+    Raises GPUUnavailable (no GPU context, no compute support, compile error, binding too large).
+    Use it from Blender's main thread only. `free()` drops the GPU textures early."""
+
+    def __init__(self, binding):
+        t0 = time.perf_counter()
+        ok, why = _binding_fits(binding)
+        if not ok:
+            raise GPUUnavailable(why)
+        _check_context()
+        b = self.binding = binding
+        self.n_slots = n_slots = b.x0.shape[1]
+        self.n_blocks, self.Kw, self.bs = b.ww.shape
+        self.Kuv = b.wuv.shape[1]
+        self.N = b.lattice.n_points
+        self.V = b.n_verts
+        self.k = _kernels(self.bs, self.Kw, self.Kuv)
+        try:
+            self._upload(b)
+        except GPUUnavailable:
+            raise
+        except Exception as exc:
+            raise GPUUnavailable(f"uploading the binding to the GPU failed ({exc})") from None
+        if len(b.island_origin) == 1:
+            self.origins = b.island_origin[0][None]
+        else:
+            self.origins = b._origins(np.arange(self.V))
+        self.upload_seconds = time.perf_counter() - t0
+
+    def _upload(self, b):
+        KK = self.Kw * self.Kuv
+        n_slots = self.n_slots
+        tex = {}
+        tex["x0"] = make_texture(_pad_to_vec4(b.x0.T), 4)
+        # (n_blocks, K, bs) -> per slot rows of K
+        tex["wuv"] = make_texture(b.wuv.transpose(0, 2, 1).reshape(-1))
+        tex["ww"] = make_texture(b.ww.transpose(0, 2, 1).reshape(-1))
+        tex["s"] = make_texture(b.slot_influence)
+        tex["block_run"] = make_texture(b.block_run)
+        tex["run_idx"] = make_texture(b.run_idx.reshape(-1))
+        tex["slot"] = make_texture(b.slot)
+        # One-ring CSR: for every face corner (slot v at corner k), the other two corners in cyclic
+        # order; sorted by v (stable, so a slot's faces keep the binding's face order).
+        corners = np.concatenate(b.corner_parts, axis=1) if b.corner_parts else np.zeros((3, 0), np.int64)
+        owner = corners.ravel()
+        others = np.stack([np.concatenate([corners[1], corners[2], corners[0]]),
+                           np.concatenate([corners[2], corners[0], corners[1]])], 1)
+        order = np.argsort(owner, kind="stable")
+        start = np.zeros(n_slots + 1, np.int64)
+        np.cumsum(np.bincount(owner, minlength=n_slots), out=start[1:])
+        tex["ring_start"] = make_texture(start)
+        tex["ring"] = make_texture(others[order], 2)
+        # Per control point: the (block, tap) pieces that land on it, in (block, tap) order.
+        pieces_cp = b.run_idx[b.block_run].reshape(-1)        # control point of piece j
+        order = np.argsort(pieces_cp, kind="stable")
+        cstart = np.zeros(self.N + 1, np.int64)
+        np.cumsum(np.bincount(pieces_cp, minlength=self.N), out=cstart[1:])
+        tex["cp_start"] = make_texture(cstart)
+        tex["cp_piece"] = make_texture(order)
+        self.n_pieces = len(pieces_cp)
+        # Work textures.
+        tex["X"] = [empty_texture(n_slots) for _ in range(3)]
+        tex["g"] = empty_texture(n_slots)
+        tex["piece"] = empty_texture(self.n_pieces)
+        tex["alpha"] = empty_texture(self.N)
+        tex["partial_slots"] = empty_texture(-(-n_slots // GROUP), 4)
+        tex["partial_points"] = empty_texture(-(-self.N // GROUP), 4)
+        tex["verts"] = empty_texture(self.V, 4)
+        self.tex = tex
+        self.nbytes = int(sum(t.width * t.height * (16 if t.format.startswith("RGBA") else
+                                                    8 if t.format.startswith("RG") else 4)
+                              for v in tex.values() for t in (v if isinstance(v, list) else [v])))
+
+    def free(self):
+        """Drop the GPU textures (the solver cannot be used afterwards)."""
+        self.tex = None
+
+    # -- kernels --
+
+    def _run(self, name, n, samplers=(), images=(), ints=(), floats=()):
+        sh = self.k[name]
+        for sname, t in samplers:
+            sh.uniform_sampler(sname, t)
+        for iname, t in images:
+            sh.image(iname, t)
+        for cname, v in ints:
+            sh.uniform_int(cname, int(v))
+        for cname, v in floats:
+            sh.uniform_float(cname, float(v))
+        return _dispatch(sh, n)
+
+    def _forward(self, c):
+        T = self.tex
+        self._run("forward", self.n_slots,
+                  [("x0", T["x0"]), ("wuv", T["wuv"]), ("ww", T["ww"]), ("block_run", T["block_run"]),
+                   ("run_idx", T["run_idx"]), ("disp", self.disp)],
+                  [("x_out", T["X"][c])], [("n", self.n_slots), ("comp", c)])
+
+    def _sums(self, tex, groups):
+        return read_texture(tex, groups, 4)[:, :2].astype(np.float64).sum(0)
+
+    def _step(self, st, a, divisor):
+        """One correction along lattice axis a; returns the volume before it."""
+        T = self.tex
+        a1, a2 = (a + 1) % 3, (a + 2) % 3
+        for c in (a1, a2):
+            if not st["fresh"][c]:
+                self._forward(c)
+                st["fresh"][c] = True
+        self._run("gradient", self.n_slots,
+                  [("xp", T["X"][a1]), ("xq", T["X"][a2]), ("ring_start", T["ring_start"]), ("ring", T["ring"])],
+                  [("g_out", T["g"])], [("n", self.n_slots)])
+        groups = self._run("reduce_slots", self.n_slots,
+                           [("x0", T["x0"]), ("g", T["g"]), ("s", T["s"])],
+                           [("partial", T["partial_slots"])], [("n", self.n_slots), ("comp", a)])
+        base, flux = self._sums(T["partial_slots"], groups)
+        self._run("pieces", self.n_pieces, [("wuv", T["wuv"]), ("ww", T["ww"]), ("g", T["g"])],
+                  [("piece", T["piece"])], [("n", self.n_pieces)])
+        self._run("alpha", self.N, [("cp_start", T["cp_start"]), ("cp_piece", T["cp_piece"]), ("piece", T["piece"])],
+                  [("alpha_out", T["alpha"])], [("n", self.N)])
+        groups = self._run("reduce_points", self.N, [("alpha", T["alpha"]), ("disp", self.disp)],
+                           [("partial", T["partial_points"])], [("n", self.N), ("comp", a)])
+        aa, ad = self._sums(T["partial_points"], groups)
+        before = base + ad
+        st["volume"] = before
+        if not math.sqrt(max(aa, 0.0)) > st["degenerate"] * flux:
+            return before
+        st["used"] = True
+        r = (st["target"] - before) / divisor
+        lam = r / aa
+        self._run("update", self.N, [("alpha", T["alpha"])], [("disp_io", self.disp)],
+                  [("n", self.N), ("comp", a)], [("lam", lam)])
+        st["fresh"][a] = False
+        st["volume"] = before + lam * aa
+        return before
+
+    def solve(self, points, axes="XYZ", volume_scale=1.0):
+        """Volume-preserving FFD along lattice axes `axes` for control points `points` (N, 3).
+
+        Returns a `vpffd_addon.Solution` (verts (V, 3) float64 in lattice space, corrected points,
+        volume, target_volume, plain_volume, directions, warnings, seconds), as `Binding.solve` with
+        the same arguments. Raises ValueError for bad input (as the CPU path) and GPUUnavailable
+        when the GPU fails (fall back to the CPU)."""
+        t0 = time.perf_counter()
+        if self.tex is None:
+            raise GPUUnavailable("the GPU solver was freed")
+        b = self.binding
+        D0 = b._displacements(points)
+        dirs = _vsolve.parse_directions(axes, None)
+        if len(dirs) == 0:
+            raise ValueError("no correction directions: give axes (e.g. 'XYZ') or directions")
+        scale = float(volume_scale)
+        if not np.isfinite(scale) or scale < 0:
+            raise ValueError(f"volume_scale must be finite and >= 0, got {volume_scale!r}")
+        _check_context()
+        try:
+            return self._solve(np.asarray(points, np.float64), D0, dirs, scale, t0)
+        except (ValueError, GPUUnavailable):
+            raise
+        except Exception as exc:
+            raise GPUUnavailable(f"the GPU solve failed ({type(exc).__name__}: {exc})") from None
+
+    def _solve(self, P, D0, dirs, scale, t0):
+        b = self.binding
+        axes = [int(np.argmax(np.abs(e))) for e in dirs]
+        D32 = D0.astype(np.float32)
+        self.disp = make_texture(_pad_to_vec4(D32), 4)
+        target = scale * b.rest_volume
+        f32 = True  # the GPU computes in float32 whatever the binding's dtype
+        rest = abs(b.rest_volume)
+        vol_scale = max(abs(target), rest, rest * 1e-6 + 1e-300)
+        met_rel = _tol.MET_REL_F32 if f32 else _tol.MET_REL_F64
+        st = {"fresh": [False, False, False], "used": False, "volume": None, "target": target,
+              "degenerate": _tol.DEGENERATE_REL_F32}
+        m = len(axes)
+        plain = None
+        for d, a in enumerate(axes):
+            before = self._step(st, a, m - d)
+            plain = before if plain is None else plain
+        warn = []
+
+        def met():
+            return abs(st["volume"] - target) <= met_rel * vol_scale
+        if not met():
+            for a in axes:
+                self._step(st, a, 1)
+                if met():
+                    break
+            if not met():
+                if not st["used"]:
+                    raise ValueError("the volume cannot change along any of the correction directions "
+                                     "(no lattice influence, all mobility 0, or a lattice with one point per axis)")
+                warn.append("the volume could not reach the target along the given directions")
+        T = self.tex
+        for c in range(3):
+            if not st["fresh"][c]:
+                self._forward(c)
+        self._run("gather", self.V, [("slot", T["slot"]), ("x_0", T["X"][0]), ("x_1", T["X"][1]),
+                                     ("x_2", T["X"][2])], [("verts_out", T["verts"])], [("n", self.V)])
+        verts = read_texture(T["verts"], self.V, 4)[:, :3].astype(np.float64)
+        verts += self.origins
+        D = read_texture(self.disp, self.N, 4)[:, :3].astype(np.float64)
+        # Only the offsets the solve changed move: untouched points come back bit-identical.
+        points = P + (D - D32.astype(np.float64))
+        if not (np.isfinite(verts).all() and np.isfinite(points).all()):
+            raise ValueError("the correction overflowed: coordinates or displacements are too large")
+        return _vsolve.Solution(
+            verts=verts, points=points, volume=float(st["volume"]), target_volume=float(target),
+            plain_volume=float(plain), directions=dirs, warnings=tuple(warn),
+            seconds=time.perf_counter() - t0)

@@ -1,0 +1,294 @@
+"""GPU path (operators/gpu_backend.py) against the CPU solve, headless.
+
+The GPU backend is initialised by rendering one tiny Workbench frame (Mesa llvmpipe here). Where no
+GPU context can be made, the tests that need one are skipped with the reason printed.
+"""
+import ast
+import importlib.util
+import os
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+import vpffd_addon as vp
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+BACKEND = os.path.join(ROOT, "operators", "gpu_backend.py")
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("vpffd_gpu_backend", BACKEND)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="module")
+def gb():
+    """The backend module with Blender's GPU initialised (skips, printing why, when it cannot be)."""
+    bpy = pytest.importorskip("bpy")
+    mod = _load()
+    scene = bpy.context.scene
+    r = scene.render
+    saved = (r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage)
+    camera = None
+    if scene.camera is None:  # earlier tests may leave an empty scene: a render needs a camera
+        camera = bpy.data.objects.new("gpu-init camera", bpy.data.cameras.new("gpu-init camera"))
+        scene.collection.objects.link(camera)
+        scene.camera = camera
+    try:
+        r.engine = "BLENDER_WORKBENCH"
+        r.resolution_x = r.resolution_y = 4
+        r.resolution_percentage = 100
+        bpy.ops.render.render()
+    except Exception as exc:
+        reason = f"no GPU context: the Workbench render failed ({type(exc).__name__}: {exc})"
+        print(reason)
+        pytest.skip(reason)
+    finally:
+        r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage = saved
+        if camera is not None:
+            data = camera.data
+            bpy.data.objects.remove(camera)
+            bpy.data.cameras.remove(data)
+    ok, why = mod.available()
+    if not ok:
+        print(f"GPU path unavailable: {why}")
+        pytest.skip(f"GPU path unavailable: {why}")
+    print(f"GPU: {why}")
+    return mod
+
+
+def test_gpu_is_never_imported_at_module_level():
+    tree = ast.parse(open(BACKEND).read())
+    for node in tree.body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = [a.name for a in node.names] + [getattr(node, "module", None) or ""]
+            assert not any(n == "gpu" or n.startswith("gpu.") for n in names), ast.dump(node)
+
+
+def test_unavailable_in_background_before_gpu_init_says_why():
+    """A fresh background Blender has no GPU yet: available() says so and never raises; the solver
+    refuses with GPUUnavailable (the engine falls back to the CPU with that reason)."""
+    pytest.importorskip("bpy")
+    code = textwrap.dedent(f"""
+        import sys, importlib.util
+        sys.path.insert(0, {ROOT!r})
+        import bpy, numpy as np, vpffd_addon as vp
+        spec = importlib.util.spec_from_file_location("gb", {BACKEND!r})
+        gb = importlib.util.module_from_spec(spec); spec.loader.exec_module(gb)
+        ok, why = gb.available()
+        print("AVAILABLE", ok, why)
+        v, f = vp.icosphere(1, 0.4)
+        b = vp.bind(vp.Lattice((2, 2, 2)), v, f, dtype=np.float32)
+        try:
+            gb.GPUSolver(b)
+            print("SOLVER built")
+        except gb.GPUUnavailable as exc:
+            print("SOLVER refused", exc)
+        print("CHOOSE", gb.choose("GPU", 100000, dict(axes="XYZ")))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         env=dict(os.environ))
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith(("AVAILABLE", "SOLVER", "CHOOSE"))]
+    print("\n".join(lines))
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = "\n".join(lines)
+    assert "AVAILABLE False" in text and "background mode" in text
+    assert "SOLVER refused" in text
+    assert "CHOOSE (False," in text
+
+
+def test_supports_and_choose():
+    mod = _load()
+    assert mod.supports(dict(axes="XYZ"))[0]
+    assert mod.supports(dict(axes="zx"))[0]
+    for opts in (dict(axes="XYZ", pins=[(0, (0, 0, 0))]), dict(axes="XYZ", islands=True),
+                 dict(axes="XYZ", mobility=np.ones(8)), dict(directions=np.eye(3)), dict(axes=""),
+                 dict(axes="XYZ", preserve_volume=False)):
+        ok, why = mod.supports(opts)
+        assert not ok and why
+    assert mod.choose("CPU", 10 ** 6, dict(axes="XYZ")) == (False, "CPU chosen")
+    ok, why = mod.choose("AUTO", 100, dict(axes="XYZ"))
+    assert not ok and "vertices" in why
+    ok, why = mod.choose("GPU", 10 ** 6, dict(axes="XYZ", islands=True))
+    assert not ok and "island" in why
+
+
+def test_readback_matches_to_list_and_is_fast(gb):
+    """The read-back trap (NOTES.md section 6): our flattened zero-copy read equals Buffer.to_list()."""
+    rng = np.random.default_rng(3)
+    for channels, n in ((4, gb.TW * 3 + 17), (1, gb.TW * 2 + 5), (2, 1000)):
+        data = rng.normal(size=(n, channels)).astype(np.float32)
+        tex = gb.make_texture(data, channels)
+        got = gb.read_texture(tex, n, channels)
+        ref = np.array(tex.read().to_list(), np.float32).reshape(-1, channels)[:n]
+        np.testing.assert_array_equal(got, ref)
+        np.testing.assert_array_equal(got, data)
+    big = gb.make_texture(rng.normal(size=(gb.TW * 256, 4)).astype(np.float32), 4)
+    t = time.perf_counter()
+    arr = gb.read_texture(big, gb.TW * 256, 4)
+    seconds = time.perf_counter() - t
+    assert arr.shape == (gb.TW * 256, 4)
+    print(f"read-back of {arr.nbytes / 2 ** 20:.0f} MiB: {1000 * seconds:.1f} ms")
+    assert seconds < 1.0   # 16 MiB; a per-texel Python loop takes tens of seconds
+
+
+def _two_islands():
+    a, fa = vp.icosphere(2, 0.2, center=(-0.22, 0.05, 0.0))
+    b, fb = vp.box(3, 0.3, center=(0.22, -0.05, 0.1))
+    return np.vstack([a, b]), np.vstack([fa, fb + len(a)])
+
+
+def _case(name):
+    rng = np.random.default_rng(abs(hash(name)) % 2 ** 32)
+    influence = None
+    if name == "icosphere-bspline":
+        v, f = vp.icosphere(3, 0.42)
+        lat = vp.Lattice((4, 5, 3), interpolation="BSPLINE")
+    elif name == "box-cardinal-weights":
+        v, f = vp.box(4, 0.8)
+        lat = vp.Lattice((3, 3, 3), interpolation="CARDINAL")
+        influence = rng.uniform(0.3, 1.0, len(v))
+    elif name == "islands-linear":
+        v, f = _two_islands()
+        lat = vp.Lattice((2, 3, 4), interpolation="LINEAR")
+    elif name == "mixed-one-point-axis":
+        v, f = vp.icosphere(2, 0.4)
+        lat = vp.Lattice((1, 4, 3), interpolation=("BSPLINE", "CATMULL_ROM", "LINEAR"))
+    elif name == "bezier":
+        v, f = vp.icosphere(2, 0.4)
+        lat = vp.Lattice((3, 3, 4), interpolation="BEZIER", bounds=((-0.6,) * 3, (0.5, 0.6, 0.7)))
+    elif name == "open-cup":
+        v, f = vp.icosphere(3, 0.4)
+        keep = v[f].mean(1)[:, 2] < 0.2          # the cap removed: an open mesh
+        f = f[keep]
+        lat = vp.Lattice((3, 4, 3), interpolation="BSPLINE")
+    else:
+        raise KeyError(name)
+    P = lat.rest_points + rng.normal(scale=0.06, size=(lat.n_points, 3))
+    P[:, 2] *= 0.8
+    return lat, v, f, influence, P
+
+
+CASES = ("icosphere-bspline", "box-cardinal-weights", "islands-linear", "mixed-one-point-axis", "bezier",
+         "open-cup")
+AXES = ("XYZ", "XY", "Z", "ZX", "YZX")
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_gpu_matches_cpu(gb, name):
+    lat, v, f, influence, P = _case(name)
+    b = vp.bind(lat, v, f, influence=influence, dtype=np.float32)
+    solver = gb.GPUSolver(b)
+    for axes in AXES:
+        for scale in (1.0, 0.9):
+            cpu = b.solve(P, axes=axes, volume_scale=scale)
+            gpu = solver.solve(P, axes=axes, volume_scale=scale)
+            what = f"{name} {axes} scale {scale}"
+            assert gpu.verts.shape == (len(v), 3) and gpu.verts.dtype == np.float64
+            err = np.abs(gpu.verts - cpu.verts).max() / lat.size
+            assert err <= 1e-5, f"{what}: coordinates differ by {err:.3g} of the lattice size"
+            target = cpu.target_volume
+            assert gpu.target_volume == pytest.approx(target, rel=1e-12)
+            vol = vp.signed_volume(gpu.verts, f, origin=lat.centre)
+            assert abs(vol - target) <= 1e-5 * abs(target), f"{what}: volume {vol} vs {target}"
+            assert abs(gpu.volume - target) <= 1e-5 * abs(target), what
+            assert abs(gpu.plain_volume - cpu.plain_volume) <= 1e-5 * abs(target), what
+            assert np.abs(gpu.points - cpu.points).max() <= 1e-5 * lat.size, what
+            assert gpu.warnings == cpu.warnings, what
+            np.testing.assert_array_equal(gpu.directions, cpu.directions)
+
+
+def test_untouched_points_come_back_bit_identical(gb):
+    lat, v, f, influence, P = _case("icosphere-bspline")
+    b = vp.bind(lat, v, f, dtype=np.float32)
+    gpu = gb.GPUSolver(b).solve(P, axes="Z")
+    np.testing.assert_array_equal(gpu.points[:, :2], P[:, :2])
+
+
+def test_errors_match_cpu(gb):
+    lat, v, f, influence, P = _case("icosphere-bspline")
+    b = vp.bind(lat, v, f, dtype=np.float32)
+    s = gb.GPUSolver(b)
+    for bad in (P[:-1], np.where(np.arange(len(P))[:, None] == 3, np.nan, P)):
+        with pytest.raises(ValueError):
+            s.solve(bad)
+    with pytest.raises(ValueError):
+        s.solve(P, axes="XX")
+    with pytest.raises(ValueError):
+        s.solve(P, volume_scale=-1)
+    # One point per axis: the volume cannot change (as the CPU path says).
+    one = vp.Lattice((1, 1, 1))
+    b1 = vp.bind(one, v, f, dtype=np.float32)
+    with pytest.raises(ValueError, match="cannot change"):
+        b1.solve(one.rest_points, volume_scale=0.5)
+    with pytest.raises(ValueError, match="cannot change"):
+        gb.GPUSolver(b1).solve(one.rest_points, volume_scale=0.5)
+    s.free()
+    with pytest.raises(gb.GPUUnavailable):
+        s.solve(P)
+
+
+def test_release_drops_compiled_kernels(gb):
+    gb.release()
+    assert not gb._kernel_cache
+    assert gb.available()[0]      # compiles again on demand
+
+
+def test_rest_pose_is_identity(gb):
+    lat, v, f, influence, P = _case("box-cardinal-weights")
+    b = vp.bind(lat, v, f, influence=influence, dtype=np.float32)
+    sol = gb.GPUSolver(b).solve(lat.rest_points, axes="XYZ")
+    cpu = b.solve(lat.rest_points, axes="XYZ")
+    # Both paths may nudge the points by float32 rounding of the measured volume, no more.
+    assert np.abs(sol.verts - v).max() <= 1e-6 * lat.size
+    assert np.abs(sol.points - lat.rest_points).max() <= 1e-6 * lat.size
+    assert np.abs(cpu.points - lat.rest_points).max() <= 1e-6 * lat.size
+
+
+def test_the_extension_solves_on_the_gpu_when_asked_and_says_why_when_it_does_not(gb, vpffd):
+    """A bound object with backend GPU is solved by the compute shaders (same volume as the CPU);
+    Auto keeps the CPU on software OpenGL and says so."""
+    import bpy
+    eh = pytest.importorskip("extension_harness")
+    engine = vpffd.module.operators.engine
+    eh.reset_scene()
+    verts, tris = vp.icosphere(3, 0.8)
+    me = bpy.data.meshes.new("Ball")
+    me.vertices.add(len(verts))
+    me.vertices.foreach_set("co", verts.astype(np.float32).ravel())
+    me.loops.add(tris.size)
+    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
+    me.polygons.add(len(tris))
+    me.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
+    me.update(calc_edges=True)
+    ob = bpy.data.objects.new("Ball", me)
+    bpy.context.scene.collection.objects.link(ob)
+    lt = bpy.data.lattices.new("L")
+    lt.points_u = lt.points_v = lt.points_w = 4
+    lat = bpy.data.objects.new("L", lt)
+    lat.scale = (2.0 / 3.0,) * 3
+    bpy.context.scene.collection.objects.link(lat)
+    co = np.empty(64 * 3, np.float32)
+    lt.points.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] *= 0.5
+    lt.points.foreach_set("co_deform", co.ravel())
+    ob.vpffd.lattice = lat
+    ob.vpffd.axes = "XY"
+    ob.vpffd.backend = "GPU"
+    with bpy.context.temp_override(object=ob, active_object=ob):
+        assert bpy.ops.object.vpffd_bind() == {"FINISHED"}
+    info = engine.stats(ob)
+    assert info["backend"] == "GPU", info.get("backend_reason")
+    assert abs(info["volume_percent"] - 100.0) <= 1e-3
+    ob.vpffd.backend = "AUTO"
+    assert engine.update(ob, bpy.context.evaluated_depsgraph_get(), force=True)
+    info = engine.stats(ob)
+    assert info["backend"] == "CPU" and "Auto" in info["backend_reason"]
+    eh.reset_scene()

@@ -167,7 +167,9 @@ def _zero_offsets(obj):
 
 def update(obj, depsgraph, force=False):
     """Solve the current frame for a bound object and write its offsets. Never raises: problems
-    go to the panel (`stats(obj)['error']`) and the console. Returns True when offsets were written."""
+    go to the panel (`stats(obj)['error']`) and the console. Returns True when offsets were written.
+    `force` solves even when the inputs did not change and the modifier is switched off (Bind,
+    Apply, Check Folds and Bake need the solve)."""
     s = obj.vpffd
     uid = obj.session_uid
     try:
@@ -177,8 +179,12 @@ def update(obj, depsgraph, force=False):
         if mod is None:
             _set_stats(obj, error="the VP-FFD modifier was removed: Bind again, or Unbind")
             return False
-        if not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
+        if not force and not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
             return False  # switched off for this evaluation, like any modifier
+        if obj.data.users > 1:
+            _set_stats(obj, error=f"mesh '{obj.data.name}' is shared by {obj.data.users} objects "
+                                  "(a linked duplicate?): make it single user, then Re-bind")
+            return False
         if obj.mode == "EDIT":
             _set_stats(obj, **{**stats(obj), "error": "paused while the mesh is in Edit Mode"})
             return False
@@ -351,9 +357,9 @@ def bind(obj, depsgraph):
     check_bindable(obj)
     s = obj.vpffd
     mesh = obj.data
+    # Everything is read and checked before anything is written: a refused Bind changes nothing.
     weight = (meshio.vertex_group_weights(obj, s.vertex_group) if s.vertex_group
               else np.ones(len(mesh.vertices)))
-    _float_attribute(mesh, WEIGHT_ATTRIBUTE, weight)
     pins = np.zeros(len(mesh.vertices))
     if s.pin_mode == "VERTEX":
         if s.pin_vertex >= len(mesh.vertices):
@@ -368,6 +374,7 @@ def bind(obj, depsgraph):
             raise BindError("pins need a target Empty (Pin Target)")
         s.pin_target_rest = np.asarray(s.pin_target.matrix_world, dtype=float).ravel().tolist()
         s.pin_mesh_rest = np.asarray(obj.matrix_world, dtype=float).ravel().tolist()
+    _float_attribute(mesh, WEIGHT_ATTRIBUTE, weight)
     _float_attribute(mesh, PIN_ATTRIBUTE, pins)
 
     s.bound_topology = meshio.topology_signature(mesh)
@@ -428,6 +435,9 @@ def apply(obj, depsgraph):
     mesh = obj.data
     if mesh.shape_keys is not None:
         raise BindError("the mesh has shape keys: applying would only change the basis shape")
+    mod = modifier.find(obj)
+    if mod is not None and not mod.show_viewport:
+        raise BindError("the VP-FFD modifier is switched off: switch it on to apply, or Unbind")
     update(obj, depsgraph, force=True)
     info = stats(obj)
     if info.get("error"):

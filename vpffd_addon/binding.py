@@ -30,7 +30,10 @@ class Binding:
         """Standard FFD (Blender's Lattice modifier) for control points `points` (N, 3): (V, 3) float64."""
         D = self._displacements(points)
         X = self.x0 + np.stack([self._forward(D[:, c]) for c in range(3)])
-        return self._to_verts(X)
+        verts = self._to_verts(X)
+        if not np.isfinite(verts).all():
+            raise ValueError(f"the deformation overflows {self.dtype.name}: the control points are too far away")
+        return verts
 
     def solve(self, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
               mobility=None, pins=(), islands=False):
@@ -253,4 +256,8 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
     face_vol = np.einsum("ij,ij->i", pv[:, 0], np.cross(pv[:, 1], pv[:, 2])) / 6.0
     b.rest_island_volumes = np.bincount(face_island, face_vol, n_islands)
     b.rest_volume = float(face_vol.sum())
+    if not (np.isfinite(b.rest_island_volumes).all() and np.isfinite(b.rest_volume)):
+        raise ValueError("rest_verts are too large: their volume overflows floating point")
+    if not np.isfinite(x0).all():
+        raise ValueError(f"rest_verts do not fit in {dtype.name}")
     return b

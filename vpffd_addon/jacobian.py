@@ -34,4 +34,7 @@ def jacobian_det(binding, points):
             slots = b._forward(D[:, comp], wuv=wuv, ww=wwd)
             J[:, comp, col] = slots[b.slot]
     J[:, [0, 1, 2], [0, 1, 2]] += 1.0
-    return np.linalg.det(J)
+    det = np.linalg.det(J)
+    if not np.isfinite(det).all():
+        raise ValueError("the Jacobian overflows: the displacements are too large for the lattice's cells")
+    return det

@@ -14,6 +14,7 @@ import numpy as np
 from . import tolerances as tol
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
+_OVERFLOW = "the correction overflowed: coordinates or displacements are too large for floating point"
 
 
 @dataclass
@@ -41,8 +42,9 @@ def parse_directions(axes, directions):
             raise ValueError(f"directions must have shape (m, 3), got {d.shape}")
         if not np.isfinite(d).all():
             raise ValueError("directions must be finite")
+        d = d / np.abs(d).max(axis=1, keepdims=True).clip(min=np.finfo(float).tiny)  # no overflow
         norm = np.linalg.norm(d, axis=1)
-        if (norm == 0).any():
+        if (norm == 0).any() or not np.isfinite(norm).all():
             raise ValueError(f"direction {int(np.argmin(norm))} is the zero vector")
         return d / norm[:, None]
     if axes is None:
@@ -127,6 +129,7 @@ class _State:
         self.volumes = None                         # (k,) current volumes, known after a gradient
         self.used = np.zeros(len(targets), bool)    # volume rows that could move at least once
         self.unmet_pins = set()
+        self.skipped = []                            # steps refused as absurd, in words
         f32 = b.dtype == np.float32
         self.degenerate = tol.DEGENERATE_REL_F32 if f32 else tol.DEGENERATE_REL_F64
         self.met_rel = tol.MET_REL_F32 if f32 else tol.MET_REL_F64
@@ -204,8 +207,8 @@ class _State:
             flux = self._split(np.abs(g * b.slot_influence))
             weighted = alpha if self.mob is None else alpha * np.sqrt(self.mob)
             movable = np.linalg.norm(weighted, axis=1) > self.degenerate * flux
-            for r in np.flatnonzero(movable):
-                self.used[r] = True
+            volume_rows = np.flatnonzero(movable)
+            for r in volume_rows:
                 rows.append(alpha[r])
                 rhs.append((self.targets[r] - before[r]) / divisor)
         if self.pin_rows is not None:
@@ -217,8 +220,23 @@ class _State:
         C = np.array(rows)
         r = np.array(rhs)
         CM = C if self.mob is None else C * self.mob
-        lam = np.linalg.lstsq(CM @ C.T, r, rcond=tol.GRAM_RCOND)[0]
+        gram = CM @ C.T
+        if not (np.isfinite(gram).all() and np.isfinite(r).all()):
+            raise ValueError(_OVERFLOW)   # (LAPACK may never return on NaN input)
+        lam = np.linalg.lstsq(gram, r, rcond=tol.GRAM_RCOND)[0]
         t = CM.T @ lam
+        reach = float(np.abs(t).max()) if len(t) else 0.0
+        if not np.isfinite(reach):
+            raise ValueError(_OVERFLOW)
+        if reach > tol.MAX_STEP_LATTICE * b.lattice.size:
+            # Coefficients that are rounding noise (e.g. a mesh squashed flat across e) would fling
+            # control points away: refuse the step rather than return a wrecked lattice.
+            self.skipped.append(f"a correction along {np.round(e, 3).tolist()} would move lattice "
+                                f"points by {reach / b.lattice.size:.3g} lattice sizes; it was skipped "
+                                "(the deformed mesh is flat or nearly flat across that direction)")
+            return before
+        if preserve_volume:
+            self.used[volume_rows] = True
         n_pins = len(self.pin_slots)
         if n_pins:
             missed = np.abs((C @ t - r)[len(r) - n_pins:]) > self.met_rel * b.lattice.size
@@ -264,6 +282,8 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         raise ValueError("no correction directions: give axes (e.g. 'XYZ') or directions")
 
     targets = scale * (b.rest_island_volumes if islands else np.array([b.rest_volume]))
+    if not np.isfinite(targets).all():
+        raise ValueError(f"volume_scale {volume_scale!r} makes the target volume overflow")
     st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets)
 
     m = len(dirs)
@@ -289,12 +309,13 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
                                  "(no lattice influence, all mobility 0, or a lattice with one point per axis)")
             what = "the volume" if not islands else f"the volume of islands {np.flatnonzero(unmet).tolist()}"
             warnings.append(f"{what} could not reach the target along the given directions")
+    warnings.extend(dict.fromkeys(st.skipped))
     if st.unmet_pins:
         warnings.append(f"pins on vertices {sorted(st.unmet_pins)} could not reach their targets "
                         "(conflicting pins, immobile control points or missing directions)")
     st.ensure(0, 1, 2)
-    if not (np.isfinite(st.X).all() and np.isfinite(st.P).all()):
-        raise ValueError("the correction overflowed: coordinates or displacements are too large")
+    if not (np.isfinite(st.X).all() and np.isfinite(st.P).all() and np.isfinite(st.volumes).all()):
+        raise ValueError(_OVERFLOW)
 
     total = float(st.volumes.sum())
     return Solution(

@@ -14,3 +14,7 @@ GRAM_RCOND = 1e-12
 #: (volume rows: the target volume; pin rows: the lattice size).
 MET_REL_F64 = 1e-9
 MET_REL_F32 = 1e-5
+
+#: A single correction step may move control points by at most this many lattice sizes; beyond,
+#: its coefficients are rounding noise (a mesh squashed flat across the direction) and it is skipped.
+MAX_STEP_LATTICE = 100.0

@@ -309,7 +309,9 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
                                  "(no lattice influence, all mobility 0, or a lattice with one point per axis)")
             what = "the volume" if not islands else f"the volume of islands {np.flatnonzero(unmet).tolist()}"
             warnings.append(f"{what} could not reach the target along the given directions")
-    warnings.extend(dict.fromkeys(st.skipped))
+    if warnings or st.unmet_pins:
+        # A refused step matters only when its share was not made up by the other directions.
+        warnings.extend(dict.fromkeys(st.skipped))
     if st.unmet_pins:
         warnings.append(f"pins on vertices {sorted(st.unmet_pins)} could not reach their targets "
                         "(conflicting pins, immobile control points or missing directions)")

@@ -79,6 +79,16 @@ KNOWN_BUGS["far-translation-volume"] = (
     "translate the mesh far from its rest position (1e5 x its size and more) the measurement "
     "cancels catastrophically (a sphere translated by 1e8 lattice sizes: Solution.volume 0.206, "
     "the vertices enclose 0.259, no warning) (test_known_bug_far_translation_volume)")
+KNOWN_BUGS["open-mesh-float32-cancellation"] = (
+    "an open mesh's volume is measured about the lattice centre; with float32 bindings a mesh "
+    "that is small compared with its distance from that centre has a volume below the rounding "
+    "of the terms: at rest (no deformation) the solve moves the lattice to chase the noise, and "
+    "Solution.volume (the target) is not the volume of Solution.verts (distance/size 140: 0.1% "
+    "off; 1400: 17%; 14000: 98%), no warning (test_known_bug_open_mesh_float32_cancellation)")
+KNOWN_BUGS["float32-plain-volume-nan"] = (
+    "with a float32 binding and displacements around 1e19 (their products overflow float32 in the "
+    "volume gradient), solve can return a Solution whose plain_volume is NaN (volume and "
+    "vertices finite, no error) (test_known_bug_float32_plain_volume_nan)")
 SOLVE_TIMEOUT = float(os.environ.get("VPFFD_FUZZ_SOLVE_TIMEOUT", "5"))
 
 COUNTS = collections.defaultdict(collections.Counter)
@@ -115,6 +125,8 @@ def _known(bug, detail):
 
 @pytest.fixture(scope="module", autouse=True)
 def _summary(request):
+    global _T0
+    _T0 = time.perf_counter()
     yield
     path = os.environ.get("VPFFD_FUZZ_CORE_REPORT",
                           os.path.join(tempfile.gettempdir(), "vpffd-fuzz-core.json"))
@@ -531,6 +543,11 @@ def test_hostile_solves_are_finite_and_self_consistent(mesh, lattice, points, so
             _known("solve-hangs", f"no answer after {SOLVE_TIMEOUT} s")
             return
         _count("solve", "ok" if not sol.warnings else "ok with warnings")
+        if b.dtype == np.float32 and not _all_finite(sol.plain_volume) \
+                and _all_finite(sol.volume, sol.verts) and np.abs(P - lat.rest_points).max() > 1e18:
+            _known("float32-plain-volume-nan", f"plain_volume {sol.plain_volume} for displacements "
+                   f"{np.abs(P - lat.rest_points).max():.3g}")
+            return
         if directions is not None and np.abs(directions).max() > 1e150 \
                 and not _all_finite(sol.volume, sol.plain_volume):
             _known("float64-range", f"solve: volume {sol.volume} with directions "
@@ -624,8 +641,12 @@ def _check_solution(b, tris, P, sol, islands):
         assert sol.island_volumes is not None and len(sol.island_volumes) == b.n_islands
     # deform(points) reproduces verts (the solution is an FFD of its own control points).
     again = b.deform(sol.points)
+    # ... up to rounding of the largest number involved (the displacements included: huge ones
+    # that cancel leave their rounding behind).
     mag = max(1.0, float(np.abs(sol.verts).max()), float(np.abs(sol.points).max()),
-              float(np.abs(P).max()), float(np.abs(b._to_verts(b.x0)).max()))
+              float(np.abs(P).max()), float(np.abs(b._to_verts(b.x0)).max()),
+              float(np.abs(P - b.lattice.rest_points).max()),
+              float(np.abs(sol.points - b.lattice.rest_points).max()))
     rel = 1e-5 if b.dtype == np.float32 else 1e-9
     assert _all_finite(again)
     err = float(np.abs(again - sol.verts).max())
@@ -645,15 +666,32 @@ def _check_solution(b, tris, P, sol, islands):
     # represented well), which changes the volume by at most delta x the surface area.
     eps = 1e-5 if b.dtype == np.float32 else 1e-10
     unit = float(np.finfo(b.dtype).eps)
-    delta = 4 * (unit * float(np.abs(sol.verts - origin).max()) + 2.3e-16 * float(np.abs(sol.verts).max()))
+    # The solver's coordinates are x0 + s B D: each carries rounding of the displacement's size
+    # too (a tiny mesh moved by a large displacement cancels in the binding's precision).
+    shift = max(float(np.abs(P - b.lattice.rest_points).max()),
+                float(np.abs(sol.points - b.lattice.rest_points).max()))
+    reach = float(np.abs(sol.verts - origin).max()) + float(np.abs(b.influence).max()) * shift
+    delta = 4 * (unit * reach + 2.3e-16 * float(np.abs(sol.verts).max()))
     e1 = sol.verts[tris[:, 1]] - sol.verts[tris[:, 0]]
     e2 = sol.verts[tris[:, 2]] - sol.verts[tris[:, 0]]
     area = float(0.5 * np.linalg.norm(np.cross(e1, e2), axis=1).sum())
-    allowance = eps * (flux + rest_mag) + delta * area * 3
+    L = float(np.abs(sol.verts - origin).max())
+    # first order: delta x area; beyond it (delta comparable to the mesh): the triple products'
+    # perturbation bound per face
+    d, L = np.float64(delta), np.float64(L)      # NumPy floats: inf instead of OverflowError
+    size = np.float64(np.ptp(b._to_verts(b.x0), 0).max())   # the rest mesh: volumes below
+    with np.errstate(over="ignore"):                          # eps x size^3 are noise
+        allowance = eps * (flux + rest_mag + size ** 3) + d * area * 3 \
+            + len(tris) * (d * L * L + d * d * L + d ** 3)
     COUNTS["volume"]["compared"] += 1
     if abs(measured - sol.volume) > allowance:
         rest = b._to_verts(b.x0)
         size = float(np.ptp(rest, 0).max())
+        far = float(np.abs(0.5 * (rest.min(0) + rest.max(0)) - b.lattice.centre).max())
+        if not b.is_closed and b.dtype == np.float32 and size > 0 and far > 10 * size:
+            _known("open-mesh-float32-cancellation", f"claimed {sol.volume:.6g}, measured "
+                   f"{measured:.6g}, the open mesh {far / size:.3g} x its size from the centre")
+            return
         shift = float(np.abs(0.5 * (sol.verts.min(0) + sol.verts.max(0))
                              - 0.5 * (rest.min(0) + rest.max(0))).max())
         if size > 0 and shift > 1e5 * size:
@@ -824,3 +862,44 @@ def test_known_bug_far_translation_volume():
     sol = b.solve(P, preserve_volume=False)
     measured = vp.signed_volume(sol.verts - sol.verts.mean(0), f)
     assert abs(sol.volume - measured) <= 1e-6 * abs(measured), (sol.volume, measured)
+
+
+@pytest.mark.xfail(strict=True, reason="known bug open-mesh-float32-cancellation (see KNOWN_BUGS)")
+@pytest.mark.parametrize("size", [1e-3, 1e-4])
+def test_known_bug_open_mesh_float32_cancellation(size):
+    """Smallest reproduction: an open mesh (an icosphere with an open bowl) of size ~`size`,
+    0.14 from the centre of a 2x2x2 lattice, float32 binding, solved at rest (no deformation):
+    the lattice moves (8e-5 / 0.03) and the vertices enclose 0.9988 / 0.708 of the rest volume
+    while Solution.volume says 1.0, no warning. float64 is right to 1e-9."""
+    v1, f1 = vp.icosphere(2, 0.5)
+    hv, hf = vp.icosphere(1, 0.2, (0.75, 0.6, 0.55))
+    hf = hf[hv[hf].mean(1)[:, 2] < 0.55]
+    v = np.vstack([v1, hv]) * size + np.array([0.1, -0.05, 0.08])
+    f = np.vstack([f1, hf + len(v1)])
+    lat = vp.Lattice((2, 2, 2), "LINEAR", bounds=((-0.5,) * 3, (0.5,) * 3))
+    b = vp.bind(lat, v, f, dtype=np.float32)
+    sol = b.solve(lat.rest_points, axes="XYZ")
+    measured = vp.signed_volume(sol.verts, f, origin=lat.centre)
+    assert abs(measured / b.rest_volume - 1) <= 1e-4 or sol.warnings, measured / b.rest_volume
+
+
+@pytest.mark.xfail(strict=True, reason="known bug float32-plain-volume-nan (see KNOWN_BUGS)")
+def test_known_bug_float32_plain_volume_nan():
+    """The fuzzer's case: a flat closed tetrahedron at 1e15 in a 1x1x2 LINEAR lattice, float32,
+    both control points flung ~2e19, corrected along Z then Y: Solution(volume=0.0,
+    plain_volume=nan). Expected: a
+    ValueError (overflow) or finite fields."""
+    v = np.array([[0, 0, 0], [0.25, 0, 0], [0, 0.25, 0], [0.125, 0.125, 0]]) + 1e15
+    f = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
+    lat = vp.Lattice((1, 1, 2), "LINEAR", bounds=((1e15, 1e15, 1000083610590425.5),
+                                                   (1e15 + 0.25, 1e15 + 0.25, 1000265102230911.1)))
+    b = vp.bind(lat, v, f, dtype=np.float32)
+    P = np.array([[2.3667510738399764e+19, 1.718972776710319e+19, -1.277120615780433e+19],
+                  [-2.296534186858809e+19, -1.1310910467870028e+19, 7.510322437428608e+17]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        try:
+            sol = b.solve(P, axes="ZY")
+        except ValueError:
+            return
+    assert np.isfinite([sol.volume, sol.plain_volume, sol.target_volume]).all(), sol

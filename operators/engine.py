@@ -408,7 +408,9 @@ def bind(obj, depsgraph):
 def _inside_count(state, lattice):
     v = meshio.transform(state.rest, state.L)
     eps = 1e-6 * lattice.size
-    return int(((v >= lattice.lo - eps) & (v <= lattice.hi + eps)).all(1).sum())
+    spans = np.array(lattice.shape) > 1  # a one-point axis has no extent to be outside of
+    inside = (v >= lattice.lo - eps) & (v <= lattice.hi + eps)
+    return int(inside[:, spans].all(1).sum())
 
 
 def unbind(obj):

@@ -5,9 +5,10 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import bake, demos, gpu_backend, handlers, ops, overlay, panel, properties
+from . import bake, cage, demos, gpu_backend, handlers, ops, overlay, panel, properties
 
-classes = properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
+classes = (properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
+           + cage.classes)
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
@@ -17,12 +18,14 @@ def register():
     properties.register()
     handlers.register()
     demos.register()
+    cage.register()
     overlay.register()
 
 
 def unregister():
     gpu_backend.release()
     overlay.unregister()
+    cage.unregister()
     demos.unregister()
     handlers.unregister()
     properties.unregister()

@@ -11,11 +11,12 @@ import bpy
 import numpy as np
 
 from .. import vpffd_addon as vp
-from . import gpu_backend, meshio, modifier
+from . import cage, gpu_backend, meshio, modifier
 
 WEIGHT_ATTRIBUTE = "vpffd_weight"   # vertex-group weight at bind time (1 without a group)
 PIN_ATTRIBUTE = "vpffd_pin"         # 1 for pinned vertices
 JACOBIAN_ATTRIBUTE = "vpffd_jacobian"  # det of the deformation's Jacobian (on request)
+CAGE_REST_PROPERTY = "vpffd_cage_rest"  # the cage's points at bind time, flat, in cage space
 FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request only (Check Folds)
 
 _cache = {}   # object session_uid -> _Bound
@@ -82,6 +83,37 @@ def _lattice_model(lattice_data):
     return vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0))), grid
 
 
+def _is_control(ob):
+    """Whether `ob` can deform a bound mesh: a Lattice object or a VP-FFD cage mesh."""
+    return ob is not None and (ob.type == "LATTICE" or cage.is_cage(ob))
+
+
+def _cage_points(cage_eval, n_points):
+    """(N, 3) evaluated cage points (shape keys, hooks, armatures and modifiers applied)."""
+    points = meshio.mesh_coords(cage_eval.data)
+    if len(points) != n_points:
+        raise ValueError(f"cage '{cage_eval.name}' evaluates to {len(points)} points instead of "
+                         f"{n_points}: remove modifiers that add or remove its vertices")
+    return points
+
+
+def _cage_model(state, obj, cage_ob):
+    """(vp.Cage at bind time, its rest points (N, 3), key) for a bound mesh, cached per object."""
+    flat = tuple(cage_ob.data[cage.CELLS_PROPERTY].to_list())
+    rest = obj.data.get(CAGE_REST_PROPERTY)
+    if rest is None:
+        raise ValueError("the mesh was bound to another kind of lattice: Re-bind")
+    rest = np.array(rest.to_list(), np.float64).reshape(-1, 3)
+    key = (hash(flat), rest.tobytes())
+    if state.cage_key != key:
+        cells = cage.decode_cells(flat)
+        if len(rest) != len(cage_ob.data.vertices):
+            raise ValueError(f"cage '{cage_ob.name}' has {len(cage_ob.data.vertices)} points, "
+                             f"{len(rest)} when bound: Re-bind")
+        state.cage_model, state.cage_key = vp.Cage(rest, cells), key
+    return state.cage_model, rest, ("cage", key[0])
+
+
 class _Bound:
     """Cached per-object state: rest mesh, weights, pins and the NumPy binding."""
 
@@ -99,6 +131,7 @@ class _Bound:
         self.signature = None
         self.overlay = None
         self.gpu = None        # GPUSolver for the current binding, made on first GPU use
+        self.cage_model = self.cage_key = None
 
     def free(self):
         if self.gpu is not None:
@@ -109,14 +142,15 @@ class _Bound:
         """True when the mesh's own coordinates differ from those this state was built from."""
         return not np.array_equal(meshio.mesh_coords(mesh, np.float32), self.rest32)
 
-    def binding_for(self, lattice, grid, L, influence):
-        """The binding for this lattice, mesh-to-lattice matrix and influence (rebuilt on change)."""
-        key = (lattice.shape, lattice.interpolation, grid.tobytes(), L.round(12).tobytes(),
-               influence.tobytes())
+    def binding_for(self, lattice, model_key, grid, L, influence, cage_options=None):
+        """The binding for this lattice or cage, mesh-to-lattice matrix and influence (rebuilt on
+        change). cage_options: (depth, outside) for a cage."""
+        key = (model_key, cage_options, grid.tobytes(), L.round(12).tobytes(), influence.tobytes())
         if key != self.key:
             verts = meshio.transform(self.rest, L)
             self.free()
-            self.binding = vp.bind(lattice, verts, self.tris, influence=influence, dtype=np.float32)
+            extra = {} if cage_options is None else dict(depth=cage_options[0], outside=cage_options[1])
+            self.binding = vp.bind(lattice, verts, self.tris, influence=influence, dtype=np.float32, **extra)
             self.key, self.L = key, L
         return self.binding
 
@@ -154,6 +188,7 @@ def _pin_targets(s, state, lat_matrix):
 
 
 def _mobility(s, lattice_object):
+    """(N,) mobility from a vertex group of the lattice or cage, or None."""
     if not s.mobility_group:
         return None
     return meshio.lattice_group_weights(lattice_object, s.mobility_group)
@@ -195,9 +230,9 @@ def update(obj, depsgraph, force=False):
             _set_stats(obj, error="the mesh's topology changed since binding: Re-bind")
             return False
         lat_ob = s.lattice
-        if lat_ob is None or lat_ob.type != "LATTICE":
+        if not _is_control(lat_ob):
             _zero_offsets(obj)
-            _set_stats(obj, error="the lattice is missing: pick a Lattice object, or Unbind")
+            _set_stats(obj, error="the lattice is missing: pick a Lattice object or a VP-FFD cage, or Unbind")
             return False
 
         lat_eval = lat_ob.evaluated_get(depsgraph)
@@ -205,27 +240,34 @@ def update(obj, depsgraph, force=False):
         # Animated settings (volume scale, strength, ...) have this evaluation's values on the
         # evaluated object only: a render's depsgraph does not write them back to the original.
         s = ob_eval.vpffd
-        lattice, grid = _lattice_model(lat_eval.data)
-        points = meshio.lattice_points(lat_eval.data, "co_deform")
-        M_lat = meshio.matrix(lat_eval.matrix_world)
-        L = np.linalg.inv(M_lat) @ meshio.matrix(ob_eval.matrix_world)
-        axes, directions = _directions(s, M_lat)
         state = _cache.get(uid)
         if state is None or state.edited(mesh):
             # First use (e.g. after loading), or the vertices were moved in Edit Mode: embed the
             # mesh's coordinates as they are now, as the Lattice modifier would.
             state = _cache[uid] = _Bound(obj)
+        cage_options = None
+        if lat_ob.type == "LATTICE":
+            lattice, grid = _lattice_model(lat_eval.data)
+            points = meshio.lattice_points(lat_eval.data, "co_deform")
+            model_key = (lattice.shape, lattice.interpolation)
+        else:
+            lattice, grid, model_key = _cage_model(state, obj, lat_ob)
+            points = _cage_points(lat_eval, lattice.n_points)
+            cage_options = (s.cage_depth, s.cage_outside)
+        M_lat = meshio.matrix(lat_eval.matrix_world)
+        L = np.linalg.inv(M_lat) @ meshio.matrix(ob_eval.matrix_world)
+        axes, directions = _directions(s, M_lat)
         influence = _influence(s, state)
         pins = _pin_targets(s, state, M_lat)
         mobility = _mobility(s, lat_ob)
-        signature = (points.tobytes(), L.tobytes(), grid.tobytes(), axes, s.space, s.strength,
-                     s.volume_scale, s.use_islands, s.invert_vertex_group, repr(pins), s.use_fold_attribute,
-                     None if mobility is None else mobility.tobytes())
+        signature = (points.tobytes(), L.tobytes(), grid.tobytes(), model_key, cage_options, axes, s.space,
+                     s.strength, s.volume_scale, s.use_islands, influence.tobytes(), repr(pins),
+                     s.use_fold_attribute, None if mobility is None else mobility.tobytes())
         if not force and signature == state.signature:
             return False
 
         t0 = time.perf_counter()
-        binding = state.binding_for(lattice, grid, L, influence)
+        binding = state.binding_for(lattice, model_key, grid, L, influence, cage_options)
         t_core = time.perf_counter()
         # Strength scales every displacement alike, so it scales the lattice offsets instead of
         # the binding's weights (no re-bind when it is animated).
@@ -250,7 +292,8 @@ def update(obj, depsgraph, force=False):
         meshio.write_offsets(mesh, offsets)
         seconds = time.perf_counter() - t0
         state.signature, state.points = signature, used_points
-        state.overlay = (meshio.transform(used_points, M_lat), lattice.shape)
+        edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
+        state.overlay = (meshio.transform(used_points, M_lat), edges)
 
         rest_volume = binding.rest_volume
         info = dict(error=None, seconds=seconds, core_seconds=core_seconds, warnings=warnings,
@@ -292,9 +335,22 @@ def _solve(state, binding, P, s, options):
     return sol, "CPU", why
 
 
+def _lattice_edges(shape):
+    """(E, 2) index pairs of neighbouring lattice points, u fastest."""
+    nu, nv, nw = shape
+    index = np.arange(nu * nv * nw).reshape(nw, nv, nu)
+    pairs = []
+    for axis in range(3):
+        if index.shape[axis] > 1:
+            a = np.take(index, range(index.shape[axis] - 1), axis=axis).ravel()
+            b = np.take(index, range(1, index.shape[axis]), axis=axis).ravel()
+            pairs.append(np.stack([a, b], 1))
+    return np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
+
+
 def overlay_geometry(obj):
-    """(corrected lattice points in world space (N, 3), lattice shape, label) of the last solve,
-    or None before the first one."""
+    """(corrected lattice or cage points in world space (N, 3), edges (E, 2), label) of the last
+    solve, or None before the first one."""
     state = _cache.get(obj.session_uid)
     if state is None or getattr(state, "overlay", None) is None:
         return None
@@ -343,8 +399,8 @@ def check_bindable(obj):
     if obj.mode == "EDIT":
         raise BindError("leave Edit Mode before binding")
     s = obj.vpffd
-    if s.lattice is None or s.lattice.type != "LATTICE":
-        raise BindError("pick a Lattice object first")
+    if not _is_control(s.lattice):
+        raise BindError("pick a Lattice object or a VP-FFD cage first")
     if obj.data.users > 1:
         raise BindError(f"mesh '{obj.data.name}' is shared by {obj.data.users} objects (linked "
                         "duplicates); make it single user (Object > Relations > Make Single User)")
@@ -369,6 +425,16 @@ def bind(obj, depsgraph):
         if not s.pin_vertex_group:
             raise BindError("choose the vertex group to pin")
         pins = (meshio.vertex_group_weights(obj, s.pin_vertex_group) > 0).astype(float)
+    cage_rest = None
+    if s.lattice.type != "LATTICE":
+        # A cage's rest state is its evaluated shape now; every bound mesh keeps its own copy.
+        cage_eval = s.lattice.evaluated_get(depsgraph)
+        try:
+            cells = cage.cage_cells(s.lattice)
+            cage_rest = _cage_points(cage_eval, len(s.lattice.data.vertices))
+            vp.Cage(cage_rest, cells)
+        except ValueError as exc:
+            raise BindError(f"cage '{s.lattice.name}': {exc}") from None
     if s.pin_mode != "NONE":
         if s.pin_target is None:
             raise BindError("pins need a target Empty (Pin Target)")
@@ -376,6 +442,10 @@ def bind(obj, depsgraph):
         s.pin_mesh_rest = np.asarray(obj.matrix_world, dtype=float).ravel().tolist()
     _float_attribute(mesh, WEIGHT_ATTRIBUTE, weight)
     _float_attribute(mesh, PIN_ATTRIBUTE, pins)
+    if cage_rest is not None:
+        mesh[CAGE_REST_PROPERTY] = cage_rest.ravel().tolist()
+    elif CAGE_REST_PROPERTY in mesh:
+        del mesh[CAGE_REST_PROPERTY]
 
     s.bound_topology = meshio.topology_signature(mesh)
     s.is_bound = True
@@ -394,12 +464,17 @@ def bind(obj, depsgraph):
     if not b.is_closed:
         warnings.append("the mesh is not closed: the volume of an open surface is measured about "
                         "the lattice centre")
-    inside = _inside_count(state, b.lattice)
-    if inside < b.n_verts:
-        warnings.append(f"{b.n_verts - inside} of {b.n_verts} vertices lie outside the lattice "
-                        "(they follow its boundary, as with the Lattice modifier)")
-    if 1 in b.lattice.shape:
-        warnings.append("the lattice has a single point on an axis: it only moves along that axis")
+    if isinstance(b.lattice, vp.Cage):
+        if b.n_outside:
+            what = "they follow its boundary" if b.outside == "FOLLOW" else "they stay where they are"
+            warnings.append(f"{b.n_outside} of {b.n_verts} vertices lie outside the cage's region ({what})")
+    else:
+        inside = _inside_count(state, b.lattice)
+        if inside < b.n_verts:
+            warnings.append(f"{b.n_verts - inside} of {b.n_verts} vertices lie outside the lattice "
+                            "(they follow its boundary, as with the Lattice modifier)")
+        if 1 in b.lattice.shape:
+            warnings.append("the lattice has a single point on an axis: it only moves along that axis")
     if info.get("folds"):
         warnings.append(f"the lattice folds space: {info['folds']} vertices inverted")
     return warnings
@@ -427,6 +502,8 @@ def unbind(obj):
         attr = mesh.attributes.get(name)
         if attr is not None:
             mesh.attributes.remove(attr)
+    if CAGE_REST_PROPERTY in mesh:
+        del mesh[CAGE_REST_PROPERTY]
     obj.vpffd.is_bound = False
     forget(obj)
     mesh.update_tag()

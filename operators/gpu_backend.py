@@ -163,6 +163,8 @@ def supports(options=None, binding=None):
 
 
 def _binding_fits(b):
+    if not hasattr(b, "ww"):
+        return False, "cages are solved on the CPU (the GPU path does Lattice objects)"
     Kw, Kuv = b.ww.shape[1], b.wuv.shape[1]
     n_slots = b.x0.shape[1]
     sizes = {"weights": n_slots * Kuv, "one-ring": 3 * b.n_faces, "pieces": b.ww.shape[0] * Kw * Kuv}

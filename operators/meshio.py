@@ -34,12 +34,15 @@ def lattice_points(lattice_data, attr="co_deform"):
 
 
 def lattice_group_weights(lattice_object, group_name):
-    """(N,) weights of a lattice vertex group (unassigned points 0). N is the lattice size, small."""
+    """(N,) weights of a vertex group of a Lattice or a cage mesh (unassigned points 0). N is the
+    number of control points, small, so a loop over them is cheap."""
     group = lattice_object.vertex_groups.get(group_name)
     if group is None:
-        raise ValueError(f"lattice '{lattice_object.name}' has no vertex group '{group_name}'")
-    w = np.zeros(len(lattice_object.data.points))
-    for i, point in enumerate(lattice_object.data.points):
+        raise ValueError(f"'{lattice_object.name}' has no vertex group '{group_name}'")
+    data = lattice_object.data
+    items = data.points if lattice_object.type == "LATTICE" else data.vertices
+    w = np.zeros(len(items))
+    for i, point in enumerate(items):
         for g in point.groups:
             if g.group == group.index:
                 w[i] = g.weight

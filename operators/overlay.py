@@ -1,4 +1,4 @@
-"""Viewport overlay: the corrected lattice (the control points the solver used) and the volume
+"""Viewport overlay: the corrected lattice or cage (the control points the solver used) and the volume
 percentage next to each bound object whose "Show Corrected Lattice" is on.
 
 Only the draw callbacks touch `gpu`/`blf`, and only when Blender draws a 3D viewport; nothing runs
@@ -15,17 +15,9 @@ TEXT_COLOUR = (1.0, 1.0, 1.0, 0.95)
 _handles = []
 
 
-def lattice_lines(points, shape):
-    """(2 * E, 3) segment end points joining neighbouring lattice points (N, 3), u fastest."""
-    nu, nv, nw = shape
-    grid = np.asarray(points, float).reshape(nw, nv, nu, 3)
-    segments = []
-    for axis in range(3):                         # along w, v, u in the (w, v, u) grid
-        if grid.shape[axis] > 1:
-            a = np.take(grid, range(grid.shape[axis] - 1), axis=axis).reshape(-1, 3)
-            b = np.take(grid, range(1, grid.shape[axis]), axis=axis).reshape(-1, 3)
-            segments.append(np.stack([a, b], 1).reshape(-1, 3))
-    return np.concatenate(segments) if segments else np.zeros((0, 3))
+def lines(points, edges):
+    """(2 * E, 3) segment end points for points (N, 3) joined by edges (E, 2)."""
+    return np.asarray(points, float)[np.asarray(edges, np.int64)].reshape(-1, 3)
 
 
 def _visible(context):
@@ -46,9 +38,9 @@ def _draw_lattices():
         gpu.state.blend_set("ALPHA")
         gpu.state.line_width_set(1.5)
         gpu.state.point_size_set(5.0)
-        for _, (points, shape, _) in _visible(context):
+        for _, (points, edges, _) in _visible(context):
             shader.uniform_float("color", LATTICE_COLOUR)
-            batch_for_shader(shader, "LINES", {"pos": lattice_lines(points, shape).astype(np.float32)}).draw(shader)
+            batch_for_shader(shader, "LINES", {"pos": lines(points, edges).astype(np.float32)}).draw(shader)
             batch_for_shader(shader, "POINTS", {"pos": points.astype(np.float32)}).draw(shader)
         gpu.state.blend_set("NONE")
     except Exception as exc:  # drawing must never raise into Blender

@@ -1,7 +1,7 @@
 """The VP-FFD panel, in the Modifier properties next to the modifier stack."""
 import bpy
 
-from . import bake, engine, modifier
+from . import bake, cage, engine, modifier
 
 
 class OBJECT_PT_vpffd(bpy.types.Panel):
@@ -18,11 +18,17 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
         layout = self.layout
         layout.use_property_split = True
         ob = context.object
+        if cage.is_cage(ob):
+            self.draw_cage(layout, ob)
+            return
         s = ob.vpffd
         bound = s.is_bound
 
         col = layout.column()
         col.prop(s, "lattice")
+        if cage.is_cage(s.lattice):
+            col.prop(s, "cage_depth")
+            col.prop(s, "cage_outside")
         row = col.row(align=True)
         row.prop_search(s, "vertex_group", ob, "vertex_groups", text="Vertex Group")
         row.prop(s, "invert_vertex_group", text="", icon="ARROW_LEFTRIGHT")
@@ -62,6 +68,17 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
         if bound:
             self.draw_status(layout, ob)
             bake.draw_bake(layout, ob)
+
+    @staticmethod
+    def draw_cage(layout, ob):
+        box = layout.box()
+        try:
+            cells = cage.cage_cells(ob)
+            box.label(text=f"VP-FFD cage: {len(cells)} cells, {len(ob.data.vertices)} points", icon="MESH_ICOSPHERE")
+        except ValueError as exc:
+            box.label(text=str(exc), icon="ERROR")
+        box.label(text="Bind meshes to it from their own VP-FFD panel")
+        box.operator("object.vpffd_cage_fit", icon="FULLSCREEN_ENTER")
 
     @staticmethod
     def draw_status(layout, ob):

@@ -18,7 +18,8 @@ AXES_ITEMS = [
 
 
 def _poll_lattice(self, obj):
-    return obj.type == "LATTICE"
+    from .cage import is_cage
+    return obj.type == "LATTICE" or (is_cage(obj) and obj is not self.id_data)
 
 
 def _poll_empty(self, obj):
@@ -52,7 +53,18 @@ def _settings_changed(self, context):
 class VPFFD_Settings(bpy.types.PropertyGroup):
     lattice: PointerProperty(
         name="Lattice", type=bpy.types.Object, poll=_poll_lattice, update=_settings_changed,
-        description="Lattice object that deforms this mesh (as with a Lattice modifier)")
+        description="Lattice object that deforms this mesh (as with a Lattice modifier), or a VP-FFD "
+                    "cage of any shape (Add > VP-FFD Cage)")
+    cage_depth: IntProperty(
+        name="Cage Depth", default=3, min=0, max=6, soft_max=4, update=_settings_changed,
+        description="Refinement levels of a cage: each halves its cells, so the deformation comes "
+                    "closer to the smooth limit; binding time and memory grow about 8x per level")
+    cage_outside: EnumProperty(
+        name="Outside", default="FOLLOW", update=_settings_changed,
+        items=[("FOLLOW", "Follow", "Vertices outside the cage's region move with the closest point "
+                                    "of its boundary"),
+               ("STAY", "Stay", "Vertices outside the cage's region do not move")],
+        description="What vertices outside a cage's region do")
     vertex_group: StringProperty(
         name="Vertex Group", update=_settings_changed,
         description="Vertex group that scales the deformation per vertex (read at bind time)")
@@ -75,7 +87,7 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Target volume as a multiple of the rest volume (animate it to breathe or inflate)")
     mobility_group: StringProperty(
         name="Mobility Group", update=_settings_changed,
-        description="Lattice vertex group: how freely each lattice point may move for the correction "
+        description="Vertex group of the lattice or cage: how freely each point may move for the correction "
                     "(1 free, 0 fixed; unassigned points stay fixed). Empty: all points free")
     use_islands: BoolProperty(
         name="Per-Island Volume", default=False, update=_settings_changed,

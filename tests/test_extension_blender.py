@@ -460,16 +460,19 @@ def test_overlay_geometry_is_the_corrected_lattice_in_world_space(ext):
     _animate_squash(lat, 0.5)
     _bind(ball, lattice=lat, axes="XY", show_overlay=True)
     bpy.context.scene.frame_set(15)
-    points, shape, label = _engine(ext).overlay_geometry(ball)
-    assert shape == (4, 4, 4) and label.endswith("% volume")
+    points, edges, label = _engine(ext).overlay_geometry(ball)
+    assert len(points) == 64 and label.endswith("% volume")
     M = np.array(lat.matrix_world)
     deformed = _points(lat.evaluated_get(bpy.context.evaluated_depsgraph_get()), "co_deform")
     user = deformed @ M[:3, :3].T + M[:3, 3]
     moved = np.abs(points - user).max(1)
     assert moved.max() > 1e-3                     # the correction moved lattice points sideways
     assert np.abs((points - user)[:, 2]).max() <= 1e-6   # XY correction: no vertical motion
-    lines = ext.module.operators.overlay.lattice_lines(points, shape)
+    lines = ext.module.operators.overlay.lines(points, edges)
     assert lines.shape == (2 * 3 * 4 * 4 * 3, 3)  # 3 axes x 16 rows x 3 segments, 2 ends each
+    # Every segment joins two lattice neighbours: one grid step along one lattice axis.
+    step = np.linalg.norm(lines[1::2] - lines[0::2], axis=1)
+    assert step.min() > 0
 
 
 def test_fold_attribute_holds_the_jacobian_determinant(ext):

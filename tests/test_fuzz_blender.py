@@ -365,7 +365,7 @@ def _watchdog_file():
 # Found by this fuzzer and fixed since (the regression tests at the end show them): a violation
 # that matches one of them again fails the run, labelled.
 FIXED_BUGS = {"operator-raises-with-modifier-off", "apply-with-modifier-off", "flat-lattice-blowup",
-              "failed-bind-changes-weights", "linked-duplicate-of-bound-mesh"}
+              "failed-bind-changes-weights", "linked-duplicate-of-bound-mesh", "stale-signature"}
 
 
 def _known(bug, detail):
@@ -1367,13 +1367,13 @@ def test_regression_linked_duplicate_of_bound_mesh(ext):
     assert err <= 1e-6, f"the original's shape changed by {err:.3g} when its duplicate moved"
 
 
-@pytest.mark.xfail(strict=True, reason="known bug stale-signature (see KNOWN_BUGS)")
 @pytest.mark.parametrize("change", ["interpolation", "vertex group with invert"])
-def test_known_bug_stale_signature(ext, change):
+def test_fixed_bug_stale_signature(ext, change):
     """Bind a sphere to a squashed, sheared 3x3x3 B-spline lattice (with vertex group 'Weights'
     and Invert for the second case); then switch the lattice's interpolation to Linear, or clear
     the vertex group name: the mesh does not change (the solve is skipped), while solving from
-    scratch gives a shape 0.2 away. Expected: the display follows the change."""
+    scratch gave a shape 0.2 away. Fixed: the signature holds the lattice's kind and interpolation
+    and the influence itself, so the display follows the change."""
     ob, lat = _ball_and_lattice((3, 3, 3), "KEY_BSPLINE")
     co = _lattice_co(lat.data, "co")
     co[:, 2] *= 0.5

@@ -18,8 +18,13 @@ _BLOCK_SIZES = (64, 32, 16, 8)
 _MAX_PADDING = 1.15  # accept a block size when padded slots stay within 15% of the vertex count
 
 
-class Binding:
-    """A mesh bound to a lattice; made by `bind`. Coordinates are in lattice space.
+class BindingBase:
+    """What every binding shares: a mesh embedded in a control structure (a `Lattice` or a
+    `Cage`, kept as `lattice`), its vertices stored in "slots" (a reordering, possibly padded),
+    coordinates relative to per-island volume origins, faces as slot triples.
+
+    Subclasses provide the products with S B: `_forward`, `_transpose`, `_island_transpose`,
+    `_rows`, and `jacobian_det`.
 
     Public attributes: `lattice`, `dtype`, `n_verts`, `n_faces`, `is_closed`, `rest_volume`,
     `n_islands`, `island_labels` (V,), `rest_island_volumes` (n_islands,), `influence` (V,),
@@ -51,13 +56,72 @@ class Binding:
     @property
     def island_labels(self):
         """(V,) connected component of each vertex, numbered 0..n_islands-1 by lowest vertex."""
-        return self.block_island[self.slot // self.block_size]
+        return self.slot_island[self.slot]
 
     @property
     def nbytes(self):
         """Bytes held by the arrays of this binding."""
         arrays = [a for a in vars(self).values() if isinstance(a, np.ndarray)] + self.corner_parts
         return int(sum(a.nbytes for a in arrays))
+
+    def _gather(self, x):
+        """Coordinates x (n_slots,) at the face corners, one (3, F_part) array per face part."""
+        return parallel.run(lambda c: np.take(x, c), self.corner_parts)
+
+    def _gradient(self, P, Q):
+        """Volume gradient along e at every slot from gathered corner coordinates P, Q (`_gather` of
+        the coordinates on the frame vectors completing e; see `volume.gradient_component`):
+        (n_slots,) float64."""
+        n = self.x0.shape[1]
+        parts = parallel.run(lambda k: gradient_component(P[k], Q[k], self.corner_parts[k], n),
+                             list(range(len(P))))
+        return parts[0] if len(parts) == 1 else np.sum(parts, 0)
+
+    def _displacements(self, points):
+        """Validated control points (N, 3) minus the rest grid: (N, 3) float64."""
+        P = np.asarray(points, dtype=np.float64)
+        N = self.lattice.n_points
+        if P.shape != (N, 3):
+            raise ValueError(f"points must have shape ({N}, 3) for {self.lattice!r}, got {P.shape}")
+        bad = ~np.isfinite(P).all(1)
+        if bad.any():
+            raise ValueError(f"points has non-finite coordinates at {int(bad.sum())} control points "
+                             f"(first: index {int(np.argmax(bad))})")
+        return P - self.lattice.rest_points
+
+    def _origins(self, vertices):
+        """(k, 3) volume origins of the given vertices (their islands' origins)."""
+        if len(self.island_origin) == 1:
+            return np.broadcast_to(self.island_origin[0], (len(vertices), 3))
+        return self.island_origin[self.slot_island[self.slot[vertices]]]
+
+    def _to_verts(self, X):
+        """Slot-ordered coordinates (3, n_slots), relative to the island origins -> (V, 3) float64
+        in lattice space."""
+        out = np.empty((self.n_verts, 3))
+        single = len(self.island_origin) == 1
+
+        def part(vs):
+            idx = self.slot[vs]
+            for c in range(3):
+                out[vs, c] = np.take(X[c], idx)
+            out[vs] += self.island_origin[0] if single else self._origins(np.arange(vs.start, vs.stop))
+        parallel.run(part, self.vertex_parts)
+        return out
+
+
+class Binding(BindingBase):
+    """A mesh bound to a `Lattice`; made by `bind`. Coordinates are in lattice space."""
+
+    @property
+    def slot_island(self):
+        """(n_slots,) island of every slot (padding slots take their block's island)."""
+        return np.repeat(self.block_island, self.block_size)
+
+    def jacobian_det(self, points):
+        """det(d x' / d x) at every vertex for control points `points` (N, 3): (V,) float64."""
+        from .jacobian import lattice_jacobian_det
+        return lattice_jacobian_det(self, points)
 
     # -- products with the factored B (all in slot order; slots = padded, block-sorted vertices) --
 
@@ -97,19 +161,6 @@ class Binding:
         """(S B)^T g for g (n_slots,): (N,) float64."""
         return np.bincount(self.run_idx.ravel(), self._run_transpose(g).ravel(), self.lattice.n_points)
 
-    def _gather(self, x):
-        """Coordinates x (n_slots,) at the face corners, one (3, F_part) array per face part."""
-        return parallel.run(lambda c: np.take(x, c), self.corner_parts)
-
-    def _gradient(self, P, Q):
-        """Volume gradient along e at every slot from gathered corner coordinates P, Q (`_gather` of
-        the coordinates on the frame vectors completing e; see `volume.gradient_component`):
-        (n_slots,) float64."""
-        n = self.x0.shape[1]
-        parts = parallel.run(lambda k: gradient_component(P[k], Q[k], self.corner_parts[k], n),
-                             list(range(len(P))))
-        return parts[0] if len(parts) == 1 else np.sum(parts, 0)
-
     def _rows(self, slots):
         """Rows of S B for the given vertex slots (k,): dense (k, N) float64."""
         blk, pos = np.divmod(np.asarray(slots, dtype=np.int64), self.block_size)
@@ -119,41 +170,15 @@ class Binding:
         keys = (np.arange(len(blk))[:, None] * N + idx).ravel()
         return np.bincount(keys, w.ravel().astype(np.float64), len(blk) * N).reshape(len(blk), N)
 
-    def _displacements(self, points):
-        """Validated control points (N, 3) minus the rest grid: (N, 3) float64."""
-        P = np.asarray(points, dtype=np.float64)
+    def _island_transpose(self, g, k):
+        """(k, N) rows (S B)^T g restricted to each island's slots (islands 0..k-1)."""
         N = self.lattice.n_points
-        if P.shape != (N, 3):
-            raise ValueError(f"points must have shape ({N}, 3) for a {self.lattice.shape} lattice, got {P.shape}")
-        bad = ~np.isfinite(P).all(1)
-        if bad.any():
-            raise ValueError(f"points has non-finite coordinates at {int(bad.sum())} control points "
-                             f"(first: index {int(np.argmax(bad))})")
-        return P - self.lattice.rest_points
-
-    def _origins(self, vertices):
-        """(k, 3) volume origins of the given vertices (their islands' origins)."""
-        if len(self.island_origin) == 1:
-            return np.broadcast_to(self.island_origin[0], (len(vertices), 3))
-        return self.island_origin[self.block_island[self.slot[vertices] // self.block_size]]
-
-    def _to_verts(self, X):
-        """Slot-ordered coordinates (3, n_slots), relative to the island origins -> (V, 3) float64
-        in lattice space."""
-        out = np.empty((self.n_verts, 3))
-        single = len(self.island_origin) == 1
-
-        def part(vs):
-            idx = self.slot[vs]
-            for c in range(3):
-                out[vs, c] = np.take(X[c], idx)
-            out[vs] += self.island_origin[0] if single else self._origins(np.arange(vs.start, vs.stop))
-        parallel.run(part, self.vertex_parts)
-        return out
+        keys = (self.run_island[:, None, None] * N + self.run_idx).ravel()
+        return np.bincount(keys, self._run_transpose(g).ravel(), k * N).reshape(-1, N)
 
 
-def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
-    """Bind a triangle mesh to `lattice` (a `Lattice`).
+def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None, outside="FOLLOW"):
+    """Bind a triangle mesh to `lattice` (a `Lattice`, or a `Cage` of any topology).
 
     rest_verts: (V, 3) vertex positions in lattice space. tris: (F, 3) vertex indices.
     influence: (V,) per-vertex factor on the displacement (vertex-group weight * strength); default 1.
@@ -161,42 +186,25 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
     Returns a `Binding`. Open meshes are allowed (`is_closed` False); their volume is measured
     about the lattice centre. A closed mesh's islands are measured about their own bounding-box
     centres (the same volume, without the rounding of coordinates far from the lattice).
+
+    For a `Cage` only: depth, the number of refinement levels (default 3; each level halves the
+    cells, so the embedding approaches the limit region); outside, what vertices outside the
+    region do: "FOLLOW" (move with the closest point of the region's boundary) or "STAY".
+    Returns a `cage_binding.CageBinding` then, with the same methods.
     """
+    from .cage import Cage
+    if isinstance(lattice, Cage):
+        from .cage_binding import bind_cage
+        return bind_cage(lattice, rest_verts, tris, influence, dtype, 3 if depth is None else depth, outside)
     if not isinstance(lattice, Lattice):
-        raise ValueError(f"bind needs a vpffd_addon.Lattice, got {type(lattice).__name__}")
-    dtype = np.dtype(dtype)
-    if dtype not in (np.float32, np.float64):
-        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
-    verts = check_verts(rest_verts, "rest_verts")
-    V = len(verts)
-    tris = check_tris(tris, V)
-    if influence is None:
-        s = np.ones(V)
-    else:
-        s = np.asarray(influence, dtype=np.float64)
-        if s.shape != (V,):
-            raise ValueError(f"influence must have shape ({V},), got {s.shape}")
-        if not np.isfinite(s).all():
-            raise ValueError(f"influence has non-finite values at {int((~np.isfinite(s)).sum())} vertices")
-
+        raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
+    if depth is not None:
+        raise ValueError("depth applies to cages only; a Lattice has no refinement")
     b = Binding()
-    b.lattice, b.dtype, b.n_verts, b.n_faces = lattice, dtype, V, len(tris)
-    b.is_closed = is_closed(tris, V)
-
+    verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype)
+    V = b.n_verts
     taps = [axis_taps(verts[:, a], lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a])
             for a in range(3)]
-    labels, n_islands = connected_components(tris, V)
-    b.n_islands = n_islands
-    # Internal coordinates are relative to a volume origin per island.
-    if b.is_closed:
-        lo = np.full((n_islands, 3), np.inf)
-        hi = np.full((n_islands, 3), -np.inf)
-        np.minimum.at(lo, labels, verts)
-        np.maximum.at(hi, labels, verts)
-        b.island_origin = 0.5 * (lo + hi)
-    else:
-        b.island_origin = lattice.centre[None].copy()
-    rel = verts - (b.island_origin[labels] if b.is_closed else b.island_origin[0])
 
     # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded).
     cells = [first + 1 for first, _ in taps]          # first >= -1
@@ -218,11 +226,11 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
     n_slots = n_blocks * bs
 
     Ku, Kv, Kw = (w.shape[1] for _, w in taps)
-    wuv = np.zeros((n_slots, Kv * Ku), dtype)
+    wuv = np.zeros((n_slots, Kv * Ku), b.dtype)
     wuv[slot] = (taps[1][1][:, :, None] * taps[0][1][:, None, :]).reshape(V, Kv * Ku)
-    ww = np.zeros((n_slots, Kw), dtype)
+    ww = np.zeros((n_slots, Kw), b.dtype)
     ww[slot] = taps[2][1] * s[:, None]
-    b.slot_influence = np.zeros(n_slots, dtype)
+    b.slot_influence = np.zeros(n_slots, b.dtype)
     b.slot_influence[slot] = s
     # Stored per block as (K, block) so that products run along contiguous vertex rows.
     b.block_size = bs
@@ -241,23 +249,64 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64):
     b.run_island = labels[run_vertex]
     b.block_island = b.run_island[b.block_run]
 
-    x0 = np.zeros((3, n_slots), dtype)
+    finish(b, rel, tris, labels, n_slots)
+    b.block_parts = parallel.split(n_blocks, V)
+    return b
+
+
+def prepare(b, lattice, rest_verts, tris, influence, dtype):
+    """Validate a bind's inputs and fill the binding's mesh facts; shared by every kind of binding.
+    Returns (verts (V, 3), tris (F, 3), influence (V,), island labels (V,), coordinates relative
+    to the volume origins (V, 3))."""
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    verts = check_verts(rest_verts, "rest_verts")
+    V = len(verts)
+    tris = check_tris(tris, V)
+    if influence is None:
+        s = np.ones(V)
+    else:
+        s = np.asarray(influence, dtype=np.float64)
+        if s.shape != (V,):
+            raise ValueError(f"influence must have shape ({V},), got {s.shape}")
+        if not np.isfinite(s).all():
+            raise ValueError(f"influence has non-finite values at {int((~np.isfinite(s)).sum())} vertices")
+    b.lattice, b.dtype, b.n_verts, b.n_faces = lattice, dtype, V, len(tris)
+    b.is_closed = is_closed(tris, V)
+    labels, n_islands = connected_components(tris, V)
+    b.n_islands = n_islands
+    # Internal coordinates are relative to a volume origin per island.
+    if b.is_closed:
+        lo = np.full((n_islands, 3), np.inf)
+        hi = np.full((n_islands, 3), -np.inf)
+        np.minimum.at(lo, labels, verts)
+        np.maximum.at(hi, labels, verts)
+        b.island_origin = 0.5 * (lo + hi)
+    else:
+        b.island_origin = lattice.centre[None].copy()
+    rel = verts - (b.island_origin[labels] if b.is_closed else b.island_origin[0])
+    return verts, tris, s, labels, rel
+
+
+def finish(b, rel, tris, labels, n_slots):
+    """Store rest coordinates, faces and volumes once `b.slot` (V,) is known."""
+    slot, V = b.slot, b.n_verts
+    x0 = np.zeros((3, n_slots), b.dtype)
     x0[:, slot] = rel.T
     b.x0 = x0
     # Faces as (3, F) slots, ordered by their lowest slot so that gathers walk memory forwards.
     corners = slot[tris]
     corners = corners[np.argsort(corners.min(1), kind="stable")]
     b.corner_parts = [np.ascontiguousarray(corners[fs].T) for fs in parallel.split(len(corners), V)]
-    b.block_parts = parallel.split(n_blocks, V)
     b.vertex_parts = parallel.split(V, V)
 
     face_island = labels[tris[:, 0]]
     pv = rel[tris]
     face_vol = np.einsum("ij,ij->i", pv[:, 0], np.cross(pv[:, 1], pv[:, 2])) / 6.0
-    b.rest_island_volumes = np.bincount(face_island, face_vol, n_islands)
+    b.rest_island_volumes = np.bincount(face_island, face_vol, b.n_islands)
     b.rest_volume = float(face_vol.sum())
     if not (np.isfinite(b.rest_island_volumes).all() and np.isfinite(b.rest_volume)):
         raise ValueError("rest_verts are too large: their volume overflows floating point")
     if not np.isfinite(x0).all():
-        raise ValueError(f"rest_verts do not fit in {dtype.name}")
-    return b
+        raise ValueError(f"rest_verts do not fit in {b.dtype.name}")

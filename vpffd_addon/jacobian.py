@@ -5,7 +5,13 @@ from .bases import axis_taps
 
 
 def jacobian_det(binding, points):
-    """det(d x' / d x) at every bound vertex's rest position, for control points `points` (N, 3).
+    """det(d x' / d x) at every bound vertex's rest position, for control points `points` (N, 3),
+    for a lattice or a cage binding: (V,) float64 in the mesh's vertex order."""
+    return binding.jacobian_det(points)
+
+
+def lattice_jacobian_det(binding, points):
+    """`jacobian_det` of a lattice `Binding`.
 
     The map is x' = x + s (S B (P - P0)), s the vertex's influence held fixed. Column a of the
     Jacobian is the same product as the deformation with axis a's weights replaced by their

@@ -125,7 +125,7 @@ class _State:
         self.pin_rows = b._rows(self.pin_slots) if len(self.pin_slots) else None
         self.islands = islands
         self.targets = targets                      # (k,) volume targets (k = 1 or islands)
-        self.slot_island = np.repeat(b.block_island, b.block_size) if islands else None
+        self.slot_island = b.slot_island if islands else None
         self.volumes = None                         # (k,) current volumes, known after a gradient
         self.used = np.zeros(len(targets), bool)    # volume rows that could move at least once
         self.unmet_pins = set()
@@ -183,13 +183,9 @@ class _State:
 
     def alpha_rows(self, g):
         """(k, N) volume coefficients (S B)^T g, one row per volume row (island)."""
-        b = self.b
         if not self.islands:
-            return b._transpose(g)[None]
-        N = b.lattice.n_points
-        keys = (b.run_island[:, None, None] * N + b.run_idx).ravel()
-        A = b._run_transpose(g)
-        return np.bincount(keys, A.ravel(), len(self.targets) * N).reshape(-1, N)
+            return self.b._transpose(g)[None]
+        return self.b._island_transpose(g, len(self.targets))
 
     def step(self, e, divisor, preserve_volume):
         """One closed-form correction along unit direction e; the volume rows ask for 1/divisor of

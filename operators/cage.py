@@ -1,0 +1,290 @@
+"""Cages of any topology as mesh objects (issue 7): their vertices are the cage points, their
+edges draw the cells, and the cells themselves travel in the mesh as the integer custom property
+`vpffd_cells`. Operators make one from a box, by extruding polygons into layers, and fit one
+around the selected meshes.
+"""
+import bpy
+import numpy as np
+from bpy.props import EnumProperty, FloatProperty, IntProperty, IntVectorProperty
+
+from .. import vpffd_addon as vp
+from .meshio import matrix, mesh_coords, transform
+
+CELLS_PROPERTY = "vpffd_cells"
+
+
+def encode_cells(cells):
+    """Cells (tuples of face loops) -> flat ints [n_cells, n_faces, n, v..., n, v..., ...]."""
+    out = [len(cells)]
+    for faces in cells:
+        out.append(len(faces))
+        for f in faces:
+            out.append(len(f))
+            out.extend(int(v) for v in f)
+    return out
+
+
+def decode_cells(flat):
+    """Inverse of `encode_cells`; raises ValueError on a damaged list."""
+    flat = [int(x) for x in flat]
+    try:
+        cells, k = [], 1
+        for _ in range(flat[0]):
+            n_faces, k = flat[k], k + 1
+            faces = []
+            for _ in range(n_faces):
+                n, k = flat[k], k + 1
+                faces.append(tuple(flat[k:k + n]))
+                if len(faces[-1]) != n:
+                    raise IndexError
+                k += n
+            cells.append(tuple(faces))
+    except IndexError:
+        raise ValueError("the cage's cell list is damaged") from None
+    return cells
+
+
+def is_cage(obj):
+    return obj is not None and obj.type == "MESH" and CELLS_PROPERTY in obj.data
+
+
+def cage_cells(obj):
+    """The cells stored with a cage object (list of tuples of face loops)."""
+    cells = decode_cells(obj.data[CELLS_PROPERTY])
+    n = len(obj.data.vertices)
+    used = max((v for faces in cells for f in faces for v in f), default=-1)
+    if used >= n:
+        raise ValueError(f"cage '{obj.name}' has {n} vertices but its cells use {used + 1}: its vertices "
+                         "were deleted in Edit Mode; make the cage again")
+    return cells
+
+
+def cage_edges(cells):
+    """(E, 2) distinct edges of the cells' faces."""
+    edges = {tuple(sorted((a, b))) for faces in cells for f in faces for a, b in zip(f, f[1:] + f[:1])}
+    return np.array(sorted(edges), np.int64).reshape(-1, 2)
+
+
+def new_cage_object(context, name, points, cells, matrix_world=None):
+    """A wire-drawn mesh object holding a cage; validated first (a bad cage raises ValueError)."""
+    vp.Cage(points, cells)
+    edges = cage_edges(cells)
+    me = bpy.data.meshes.new(name)
+    me.vertices.add(len(points))
+    me.vertices.foreach_set("co", np.asarray(points, np.float32).ravel())
+    me.edges.add(len(edges))
+    me.edges.foreach_set("vertices", edges.astype(np.int32).ravel())
+    me.update()
+    me[CELLS_PROPERTY] = encode_cells(cells)
+    ob = bpy.data.objects.new(name, me)
+    ob.display_type = "WIRE"
+    ob.show_in_front = True
+    ob.hide_render = True
+    if matrix_world is not None:
+        ob.matrix_world = matrix_world
+    context.collection.objects.link(ob)
+    for other in context.selected_objects:
+        other.select_set(False)
+    ob.select_set(True)
+    context.view_layer.objects.active = ob
+    return ob
+
+
+def _selected_meshes(context, exclude=None):
+    return [ob for ob in context.selected_objects if ob.type == "MESH" and ob is not exclude
+            and not is_cage(ob)]
+
+
+def _world_bounds(objects, depsgraph, to_local=None):
+    """(lo, hi) of the objects' evaluated vertices, in world space or through `to_local` (4, 4)."""
+    pts = []
+    for ob in objects:
+        ev = ob.evaluated_get(depsgraph)
+        co = mesh_coords(ev.data)
+        M = matrix(ev.matrix_world)
+        pts.append(transform(co, M if to_local is None else to_local @ M))
+    pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if not len(pts):
+        raise ValueError("the selected meshes have no vertices")
+    return pts.min(0), pts.max(0)
+
+
+class OBJECT_OT_vpffd_cage_add_box(bpy.types.Operator):
+    """Add a box-shaped VP-FFD cage of hexahedral cells, fitted around the selected meshes when there are any"""
+    bl_idname = "object.vpffd_cage_add_box"
+    bl_label = "VP-FFD Cage Box"
+    bl_options = {"REGISTER", "UNDO"}
+
+    resolution: IntVectorProperty(
+        name="Resolution", size=3, default=(2, 2, 2), min=1, soft_max=12,
+        description="Cells along X, Y and Z")
+    size: FloatProperty(
+        name="Size", default=2.0, min=1e-6, soft_max=100.0, unit="LENGTH",
+        description="Edge length of the box when nothing is selected to fit")
+    margin: FloatProperty(
+        name="Margin", default=0.05, min=0.0, soft_max=1.0, subtype="FACTOR",
+        description="Space left around the selected meshes, as a fraction of their size")
+
+    def execute(self, context):
+        try:
+            targets = _selected_meshes(context)
+            if targets:
+                lo, hi = _world_bounds(targets, context.evaluated_depsgraph_get())
+                pad = self.margin * max(float((hi - lo).max()), 1e-6)
+                lo, hi = lo - pad, hi + pad
+                hi = np.maximum(hi, lo + 1e-6)
+            else:
+                c = np.array(context.scene.cursor.location)
+                lo, hi = c - 0.5 * self.size, c + 0.5 * self.size
+            centre = 0.5 * (lo + hi)
+            cage = vp.box_cage(self.resolution, (lo - centre, hi - centre))
+            ob = new_cage_object(context, "Cage", cage.rest_points, cage.cells)
+            ob.location = centre
+        except ValueError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"VP-FFD cage: {cage.n_cells} cells, {cage.n_points} points")
+        return {"FINISHED"}
+
+
+class OBJECT_OT_vpffd_cage_from_polygons(bpy.types.Operator):
+    """Make a VP-FFD cage by extruding the active mesh's polygons into layers of cells (a disc of polygons gives a cylinder); the mesh itself is left as it is"""
+    bl_idname = "object.vpffd_cage_from_polygons"
+    bl_label = "Cage from Polygons"
+    bl_options = {"REGISTER", "UNDO"}
+
+    layers: IntProperty(
+        name="Layers", default=2, min=1, soft_max=16,
+        description="Cells stacked along the extrusion")
+    thickness: FloatProperty(
+        name="Thickness", default=1.0, min=1e-6, soft_max=100.0, unit="LENGTH",
+        description="Total length of the extrusion")
+    direction: EnumProperty(
+        name="Direction", default="NORMAL",
+        items=[("NORMAL", "Normal", "Along the polygons' average normal"),
+               ("X", "X", "Along the object's X axis"),
+               ("Y", "Y", "Along the object's Y axis"),
+               ("Z", "Z", "Along the object's Z axis")],
+        description="Direction of the extrusion, in the object's space")
+    use_centered: bpy.props.BoolProperty(
+        name="Centered", default=True,
+        description="Extrude to both sides of the polygons, so that they sit in the cage's middle")
+
+    @classmethod
+    def poll(cls, context):
+        ob = context.active_object
+        return ob is not None and ob.type == "MESH" and ob.mode == "OBJECT" and not is_cage(ob)
+
+    def execute(self, context):
+        ob = context.active_object
+        me = ob.data
+        if not len(me.polygons):
+            self.report({"ERROR"}, f"'{ob.name}' has no polygons to extrude")
+            return {"CANCELLED"}
+        points = mesh_coords(me)
+        starts = np.empty(len(me.polygons), np.int32)
+        totals = np.empty(len(me.polygons), np.int32)
+        me.polygons.foreach_get("loop_start", starts)
+        me.polygons.foreach_get("loop_total", totals)
+        loops = np.empty(len(me.loops), np.int32)
+        me.loops.foreach_get("vertex_index", loops)
+        polys = [loops[s:s + t].tolist() for s, t in zip(starts, totals)]
+        used = np.unique(loops)
+        if self.direction == "NORMAL":
+            normals = np.empty(3 * len(me.polygons), np.float32)
+            areas = np.empty(len(me.polygons), np.float32)
+            me.polygons.foreach_get("normal", normals)
+            me.polygons.foreach_get("area", areas)
+            axis = (normals.reshape(-1, 3) * areas[:, None]).sum(0)
+            if not np.linalg.norm(axis) > 0:
+                self.report({"ERROR"}, "the polygons' normals cancel out: pick X, Y or Z as the direction")
+                return {"CANCELLED"}
+        else:
+            axis = np.eye(3)["XYZ".index(self.direction)]
+        offset = self.thickness * axis / np.linalg.norm(axis)
+        # Keep only the points the polygons use, renumbered.
+        remap = np.full(len(points), -1)
+        remap[used] = np.arange(len(used))
+        base = points[used] - (0.5 * offset if self.use_centered else 0.0)
+        try:
+            P, cells = vp.extrude(base, [remap[p].tolist() for p in polys], offset, self.layers)
+            cage = new_cage_object(context, ob.name + " Cage", P, cells, ob.matrix_world.copy())
+        except ValueError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"VP-FFD cage '{cage.name}': {len(cells)} cells, {len(P)} points")
+        return {"FINISHED"}
+
+
+class OBJECT_OT_vpffd_cage_fit(bpy.types.Operator):
+    """Move and scale the active cage's points so that it encloses the other selected meshes (do this before binding)"""
+    bl_idname = "object.vpffd_cage_fit"
+    bl_label = "Fit Cage to Selected"
+    bl_options = {"REGISTER", "UNDO"}
+
+    margin: FloatProperty(
+        name="Margin", default=0.05, min=0.0, soft_max=1.0, subtype="FACTOR",
+        description="Space left around the selected meshes, as a fraction of their size")
+    use_uniform: bpy.props.BoolProperty(
+        name="Uniform", default=False,
+        description="Scale the cage by one factor on all axes (keeps its proportions)")
+
+    @classmethod
+    def poll(cls, context):
+        ob = context.active_object
+        return is_cage(ob) and ob.mode == "OBJECT"
+
+    def execute(self, context):
+        cage_ob = context.active_object
+        targets = _selected_meshes(context, exclude=cage_ob)
+        if not targets:
+            self.report({"ERROR"}, "select the meshes to enclose, then the cage last (active)")
+            return {"CANCELLED"}
+        to_local = np.linalg.inv(matrix(cage_ob.matrix_world))
+        lo, hi = _world_bounds(targets, context.evaluated_depsgraph_get(), to_local)
+        pad = self.margin * max(float((hi - lo).max()), 1e-6)
+        lo, hi = lo - pad, hi + pad
+        me = cage_ob.data
+        P = mesh_coords(me)
+        plo, phi = P.min(0), P.max(0)
+        scale = (hi - lo) / np.maximum(phi - plo, 1e-12)
+        if self.use_uniform:
+            scale[:] = scale.max()
+        # Flat cages (e.g. one layer of extruded polygons seen edge-on) keep their extent.
+        scale = np.where(phi - plo > 1e-12, scale, 1.0)
+        new = (P - 0.5 * (plo + phi)) * scale + 0.5 * (lo + hi)
+        try:
+            vp.Cage(new, cage_cells(cage_ob))
+        except ValueError as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        me.vertices.foreach_set("co", new.astype(np.float32).ravel())
+        me.update()
+        return {"FINISHED"}
+
+
+class VIEW3D_MT_vpffd_cages(bpy.types.Menu):
+    bl_label = "VP-FFD Cage"
+    bl_idname = "VIEW3D_MT_vpffd_cages"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.operator(OBJECT_OT_vpffd_cage_add_box.bl_idname, icon="MESH_CUBE")
+        layout.operator(OBJECT_OT_vpffd_cage_from_polygons.bl_idname, icon="MOD_SOLIDIFY")
+        layout.operator(OBJECT_OT_vpffd_cage_fit.bl_idname, icon="FULLSCREEN_ENTER")
+
+
+def _add_menu(self, context):
+    self.layout.menu(VIEW3D_MT_vpffd_cages.bl_idname, icon="MESH_ICOSPHERE")
+
+
+classes = (OBJECT_OT_vpffd_cage_add_box, OBJECT_OT_vpffd_cage_from_polygons, OBJECT_OT_vpffd_cage_fit,
+           VIEW3D_MT_vpffd_cages)
+
+
+def register():
+    bpy.types.VIEW3D_MT_add.append(_add_menu)
+
+
+def unregister():
+    bpy.types.VIEW3D_MT_add.remove(_add_menu)

@@ -1,0 +1,218 @@
+"""Cages in Blender (issue 7): made by the installed extension's operators, moved by shape keys,
+hooks and direct edits, and checked against the core and against volumes measured independently
+from the float32 coordinates Blender evaluates."""
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import vpffd_addon as core  # noqa: E402  (repository copy: the independent reference)
+
+try:
+    from .test_extension_blender import VOLUME_TOL, _bind, _evaluated, _mesh_object, _sphere, _volume
+    from . import extension_harness as eh
+except ImportError:
+    from test_extension_blender import VOLUME_TOL, _bind, _evaluated, _mesh_object, _sphere, _volume
+    import extension_harness as eh
+
+
+@pytest.fixture
+def ext(vpffd):
+    eh.reset_scene()
+    yield vpffd
+    eh.reset_scene()
+
+
+def _select_only(*objects, active=None):
+    for ob in bpy.context.view_layer.objects:
+        ob.select_set(ob in objects)
+    bpy.context.view_layer.objects.active = active or objects[-1]
+
+
+def _co(ob, evaluated=False):
+    src = ob.evaluated_get(bpy.context.evaluated_depsgraph_get()).data if evaluated else ob.data
+    buf = np.empty(len(src.vertices) * 3, np.float32)
+    src.vertices.foreach_get("co", buf)
+    return buf.reshape(-1, 3).astype(np.float64)
+
+
+def _cells(ext, cage_ob):
+    return ext.module.operators.cage.cage_cells(cage_ob)
+
+
+def _box_cage_around(ball, resolution=(2, 2, 2)):
+    _select_only(ball)
+    assert bpy.ops.object.vpffd_cage_add_box(resolution=resolution, margin=0.1) == {"FINISHED"}
+    return bpy.context.view_layer.objects.active
+
+
+def _squash_key(cage_ob, amount=0.5, frames=(1, 15, 30)):
+    """Shape key squashing the cage along Z with a twist: 0 -> 1 -> 0 over the frames."""
+    cage_ob.shape_key_add(name="Basis")
+    key = cage_ob.shape_key_add(name="Squash")
+    co = _co(cage_ob)
+    a = 0.6 * co[:, 2]
+    x, y = co[:, 0] * np.cos(a) - co[:, 1] * np.sin(a), co[:, 0] * np.sin(a) + co[:, 1] * np.cos(a)
+    co = np.stack([x * (1 + 0.2 * amount), y, co[:, 2] * (1 - amount)], 1)
+    key.data.foreach_set("co", co.astype(np.float32).ravel())
+    for f, v in zip(frames, (0.0, 1.0, 0.0)):
+        key.value = v
+        key.keyframe_insert("value", frame=f)
+    return key
+
+
+def test_box_cage_squash_keeps_volume_every_frame_and_matches_the_core(ext):
+    ball = _sphere(location=(0.2, -0.1, 0.3))
+    ball.rotation_euler = (0.3, 0.1, 0.7)
+    cage_ob = _box_cage_around(ball)
+    assert len(_cells(ext, cage_ob)) == 8 and len(cage_ob.data.vertices) == 27
+    cage_ob.rotation_euler = (0.0, 0.2, 0.4)   # a cage with its own transform
+    _squash_key(cage_ob)
+    rest = _volume(ball)
+    rest_co = _co(ball)
+    assert _bind(ball, lattice=cage_ob, axes="XYZ", cage_depth=2) == {"FINISHED"}
+    eng = ext.module.operators.engine
+    for f in range(1, 31, 3):
+        bpy.context.scene.frame_set(f)
+        assert eng.stats(ball).get("error") is None
+        assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL, f
+    # Plain cage FFD (no correction) against the core, fed with Blender's evaluated cage points.
+    ball.vpffd.axes = "NONE"
+    bpy.context.scene.frame_set(15)
+    dg = bpy.context.evaluated_depsgraph_get()
+    cage_rest = np.array(ball.data["vpffd_cage_rest"]).reshape(-1, 3)
+    cage = core.Cage(cage_rest, _cells(ext, cage_ob))
+    M_cage = np.array(cage_ob.matrix_world)
+    M_ball = np.array(ball.matrix_world)
+    L = np.linalg.inv(M_cage) @ M_ball
+    local = rest_co.astype(np.float32).astype(float) @ L[:3, :3].T + L[:3, 3]
+    b = core.bind(cage, local, np.array([[0, 1, 2]]), depth=2)
+    expected = b.deform(_co(cage_ob, evaluated=True)) @ M_cage[:3, :3].T + M_cage[:3, 3]
+    got, _ = _evaluated(ball)
+    assert np.abs(got - expected).max() <= 1e-5 * 3.0
+    plain = _volume(ball)
+    assert plain / rest < 0.9   # the squash does lose volume without the correction
+    # At rest the mesh is where it was (the frame 1 key is 0).
+    ball.vpffd.axes = "XYZ"
+    bpy.context.scene.frame_set(1)
+    assert np.abs(_evaluated(ball)[0] - (rest_co @ M_ball[:3, :3].T + M_ball[:3, 3])).max() <= 1e-5
+
+
+def _disc_mesh(k=8):
+    """A k-gon surrounded by a ring of quads, in the XY plane."""
+    ang = np.arange(k) * 2 * np.pi / k
+    pts = np.concatenate([np.stack([r * np.cos(ang), r * np.sin(ang), 0 * ang], 1) for r in (0.6, 1.2)])
+    me = bpy.data.meshes.new("Disc")
+    polys = [list(range(k))] + [[i, (i + 1) % k, k + (i + 1) % k, k + i] for i in range(k)]
+    me.from_pydata(pts.tolist(), [], polys)
+    me.update()
+    ob = bpy.data.objects.new("Disc", me)
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+def test_extruded_disc_cage_follows_hooks_and_edits_and_survives_a_reload(ext, tmp_path):
+    disc = _disc_mesh()
+    _select_only(disc)
+    assert bpy.ops.object.vpffd_cage_from_polygons(layers=3, thickness=2.4, direction="Z") == {"FINISHED"}
+    cage_ob = bpy.context.view_layer.objects.active
+    assert cage_ob is not disc and len(_cells(ext, cage_ob)) == 9 * 3
+    co = _co(cage_ob)
+    assert abs(co[:, 2].min() + 1.2) < 1e-6 and abs(co[:, 2].max() - 1.2) < 1e-6   # centred
+    v, f = core.icosphere(3, 1.0)
+    limb = _mesh_object("Limb", v * [0.7, 0.7, 1.05], f)
+    rest = _volume(limb)
+    assert _bind(limb, lattice=cage_ob, axes="XYZ", cage_depth=2) == {"FINISHED"}
+    eng = ext.module.operators.engine
+    assert eng.stats(limb).get("error") is None
+    # A hook on the top ring, driven by an Empty.
+    empty = bpy.data.objects.new("Hook", None)
+    bpy.context.scene.collection.objects.link(empty)
+    top = np.flatnonzero(co[:, 2] > 1.0)
+    group = cage_ob.vertex_groups.new(name="Top")
+    group.add(top.tolist(), 1.0, "REPLACE")
+    hook = cage_ob.modifiers.new("Hook", "HOOK")
+    hook.object = empty
+    hook.vertex_group = "Top"
+    empty.location = (0.5, 0.0, -0.6)
+    bpy.context.view_layer.update()
+    assert np.abs(_co(cage_ob, evaluated=True) - co).max() > 0.4       # the hook moved the cage
+    assert eng.stats(limb).get("error") is None
+    assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL
+    moved = _evaluated(limb)[0]
+    assert np.abs(moved - v * [0.7, 0.7, 1.05]).max() > 0.1
+    # Editing the cage's own vertices moves the mesh too (the rest shape is kept per bound mesh).
+    edited = co.copy()
+    edited[top, 0] += 0.3
+    cage_ob.data.vertices.foreach_set("co", edited.astype(np.float32).ravel())
+    cage_ob.data.update()
+    bpy.context.view_layer.update()
+    assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL
+    after_edit = _evaluated(limb)[0]
+    assert np.abs(after_edit - moved).max() > 0.05
+    # The cells travel in the .blend: a reopened file deforms the same way with no action.
+    path = str(tmp_path / "cage.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    limb = bpy.data.objects["Limb"]
+    bpy.context.view_layer.update()
+    bpy.context.scene.frame_set(1)
+    assert eng.stats(limb).get("error") is None
+    np.testing.assert_allclose(_evaluated(limb)[0], after_edit, atol=1e-5)
+
+
+def test_fit_cage_encloses_the_selection(ext):
+    ball = _sphere(radius=1.5, location=(3.0, 1.0, -2.0))
+    _select_only(ball)
+    bpy.ops.object.select_all(action="DESELECT")
+    bpy.context.scene.cursor.location = (0, 0, 0)
+    assert bpy.ops.object.vpffd_cage_add_box(resolution=(3, 1, 2), size=1.0) == {"FINISHED"}
+    cage_ob = bpy.context.view_layer.objects.active
+    _select_only(ball, cage_ob, active=cage_ob)
+    assert bpy.ops.object.vpffd_cage_fit(margin=0.1) == {"FINISHED"}
+    co = _co(cage_ob) + np.array(cage_ob.location)
+    lo, hi = co.min(0), co.max(0)
+    assert np.allclose(lo, [1.5 - 0.3, -0.5 - 0.3, -3.5 - 0.3], atol=1e-3)
+    assert np.allclose(hi, [4.5 + 0.3, 2.5 + 0.3, -0.5 + 0.3], atol=1e-3)
+    assert _bind(ball, lattice=cage_ob, axes="XY", cage_depth=1) == {"FINISHED"}
+    assert ext.module.operators.engine.stats(ball).get("error") is None
+
+
+def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
+    eng = ext.module.operators.engine
+    ball = _sphere()
+    original = _co(ball).copy()
+    # A mesh that is not a cage.
+    plain = _mesh_object("NotACage", *core.icosphere(1, 2.0))
+    ball.vpffd.lattice = plain
+    with pytest.raises(RuntimeError, match="Lattice object or a VP-FFD cage"):
+        _bind(ball)
+    # A cage whose stored cells are inside out.
+    cage_ob = _box_cage_around(ball)
+    cells = [tuple(tuple(reversed(f)) for f in faces) for faces in _cells(ext, cage_ob)]
+    cage_ob.data["vpffd_cells"] = ext.module.operators.cage.encode_cells(cells)
+    ball.vpffd.lattice = cage_ob
+    with pytest.raises(RuntimeError, match="inverted"):
+        _bind(ball)
+    assert not ball.vpffd.is_bound
+    # A good cage, bound; then a cage vertex is deleted.
+    cage_ob.data["vpffd_cells"] = ext.module.operators.cage.encode_cells(
+        [tuple(tuple(reversed(f)) for f in faces) for faces in cells])
+    assert _bind(ball, axes="XYZ", cage_depth=1) == {"FINISHED"}
+    bpy.context.view_layer.objects.active = cage_ob
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.select_all(action="DESELECT")
+    bpy.ops.object.mode_set(mode="OBJECT")
+    cage_ob.data.vertices[26].select = True
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.delete(type="VERT")
+    bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.context.view_layer.update()
+    bpy.context.scene.frame_set(2)
+    error = eng.stats(ball).get("error") or ""
+    assert "cage" in error and "vertices" in error
+    assert np.isfinite(_evaluated(ball)[0]).all()
+    assert np.array_equal(_co(ball), original)       # the mesh's own coordinates are untouched
+    with bpy.context.temp_override(object=ball, active_object=ball, selected_objects=[ball]):
+        assert bpy.ops.object.vpffd_unbind() == {"FINISHED"}
+    assert np.array_equal(_co(ball), original)

@@ -1,0 +1,131 @@
+"""Binding a mesh to a `Cage`: B = S_embed R, R the refinement chain, S_embed at most 8 refined
+points per vertex. Per frame the cage points are refined once (a few sparse products on the
+refined lattice, independent of the mesh), then every vertex gathers its 8 refined points; the
+transposed product runs the same way back. Both cost O(V + refined points).
+"""
+import numpy as np
+
+from .binding import BindingBase, finish, prepare
+from .cage import Cage
+from .embedding import (_TET_DW, Elements, barycentric_weights, locate, nearest_boundary,
+                        trilinear)
+
+OUTSIDE_MODES = ("FOLLOW", "STAY")
+_ROW_CHUNK = 256
+
+
+class CageBinding(BindingBase):
+    """A mesh bound to a `Cage`; made by `bind(cage, ...)`. Coordinates are in the cage's space.
+
+    Extra public attributes: `depth`, `refinement` (`subdivision.Refinement`), `n_outside`
+    (vertices outside the region), `outside` ("FOLLOW" or "STAY").
+    """
+
+    @property
+    def slot_island(self):
+        return self._slot_island
+
+    def _extended(self, d):
+        """Cage-point values d (N,) or (N, k) -> values at the extended refined points."""
+        return self.elements.ext.matvec(self.refinement.apply(d))
+
+    def _extended_transpose(self, z):
+        return self.refinement.apply_transpose(self.elements.ext.rmatvec(z))
+
+    def _forward(self, d):
+        y = self._extended(np.asarray(d, np.float64)).astype(self.dtype)
+        return np.einsum("sk,sk->s", self.tw, y[self.tidx])
+
+    def _transpose(self, g):
+        z = np.bincount(self.tidx.ravel(), (self.tw * np.asarray(g, self.dtype)[:, None]).ravel(),
+                        self.n_ext)
+        return self._extended_transpose(z)
+
+    def _island_transpose(self, g, k):
+        keys = (self._slot_island[:, None] * self.n_ext + self.tidx).ravel()
+        z = np.bincount(keys, (self.tw * np.asarray(g, self.dtype)[:, None]).ravel(), k * self.n_ext)
+        return self._extended_transpose(z.reshape(k, self.n_ext).T).T
+
+    def _rows(self, slots):
+        slots = np.asarray(slots, np.int64)
+        out = np.zeros((len(slots), self.lattice.n_points))
+        for s in range(0, len(slots), _ROW_CHUNK):
+            part = slots[s:s + _ROW_CHUNK]
+            z = np.zeros((len(part), self.n_ext))
+            np.add.at(z, (np.arange(len(part))[:, None], self.tidx[part]), self.tw[part].astype(np.float64))
+            out[s:s + len(part)] = self._extended_transpose(z.T).T
+        return out
+
+    def jacobian_det(self, points):
+        """det(d x' / d x) at every vertex for cage points `points` (N, 3): (V,) float64. The map
+        is trilinear or affine inside each refined element; outside the region it is a
+        translation (determinant 1)."""
+        D = self._displacements(points)
+        X = self._extended(self.lattice.rest_points)
+        Y = X + self._extended(D)
+        idx = self.tidx
+        dw = np.where(self.is_hex[:, None, None], trilinear(self.param)[1], _TET_DW[None])
+        J0 = np.einsum("ska,skc->sca", dw, X[idx])
+        J1 = np.einsum("ska,skc->sca", dw, Y[idx])
+        inside = self.elem >= 0
+        M = np.broadcast_to(np.eye(3), J0.shape).copy()
+        M[inside] = np.linalg.solve(J0[inside].transpose(0, 2, 1), J1[inside].transpose(0, 2, 1)).transpose(0, 2, 1)
+        s = self.slot_influence.astype(np.float64)[:, None, None]
+        det = np.linalg.det(np.eye(3) + s * (M - np.eye(3)))
+        if not np.isfinite(det).all():
+            raise ValueError("the Jacobian overflows: the displacements are too large for the cage's cells")
+        return det[self.slot]
+
+
+def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3, outside="FOLLOW"):
+    """Bind a triangle mesh to `cage` refined `depth` times. See `vpffd_addon.bind`."""
+    if not isinstance(cage, Cage):
+        raise ValueError(f"bind_cage needs a vpffd_addon.Cage, got {type(cage).__name__}")
+    mode = str(outside).upper()
+    if mode not in OUTSIDE_MODES:
+        raise ValueError(f"outside must be one of {OUTSIDE_MODES}, got {outside!r}")
+    b = CageBinding()
+    verts, tris, s, labels, rel = prepare(b, cage, rest_verts, tris, influence, dtype)
+    V = b.n_verts
+    b.depth, b.outside = int(depth), mode
+    b.refinement = ref = cage.region(depth)
+    b.elements = el = Elements(ref)
+    X = el.ext.matvec(ref.points)
+    b.n_ext = len(X)
+    elem, param = locate(verts, X, el)
+    out = np.flatnonzero(elem < 0)
+    b.n_outside = len(out)
+    weights = np.zeros((V, 8))
+    corners = np.zeros((V, 8), np.int64)
+    if len(out) and mode == "FOLLOW":
+        # Outside the region a point moves with the nearest point of the region's boundary.
+        near, near_param = nearest_boundary(verts[out], X, el)
+        carried = np.zeros(V, bool)
+        carried[out] = True
+        src = np.where(elem >= 0, elem, 0)
+        src[out] = near
+        prm = param.copy()
+        prm[out] = near_param
+        elem_for_weights, param_for_weights, valid = src, prm, np.ones(V, bool)
+    else:
+        elem_for_weights, param_for_weights, valid = np.where(elem >= 0, elem, 0), param, elem >= 0
+    hexes = el.is_hex[elem_for_weights]
+    w = np.where(hexes[:, None], trilinear(param_for_weights)[0], barycentric_weights(param_for_weights))
+    weights[valid] = w[valid]
+    corners[valid] = el.corners[elem_for_weights[valid]]
+    corners[~hexes & valid, 4:] = corners[~hexes & valid, :1]   # unused slots point somewhere valid
+
+    # Slots: vertices sorted by (island, element), no padding.
+    order = np.lexsort((elem_for_weights, labels))
+    slot = np.empty(V, np.int64)
+    slot[order] = np.arange(V)
+    b.slot = slot
+    b._slot_island = labels[order]
+    b.slot_influence = s[order].astype(b.dtype)
+    b.tidx = corners[order]
+    b.tw = (weights[order] * s[order, None]).astype(b.dtype)
+    b.param = param_for_weights[order]
+    b.is_hex = hexes[order]
+    b.elem = np.where(elem >= 0, elem, -1)[order]       # -1: outside (a translation)
+    finish(b, rel, tris, labels, V)
+    return b

@@ -1,0 +1,273 @@
+"""Embedding points in refined cage cells (MacCracken & Joy, section 4).
+
+Hexahedral cells (type 3) carry trilinear coordinates (u, v, w); other cells are split into
+tetrahedra about their centre, two per quad face (Figure 6), and carry barycentric coordinates.
+Each embedded point is then a fixed combination of at most 8 refined points.
+"""
+import numpy as np
+
+from .cage import face_triangles
+from .sparse import Sparse
+
+#: Corners of a trilinear cell in bit order: corner k sits at (k & 1, k >> 1 & 1, k >> 2 & 1).
+_BITS = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], np.float64)
+_NEWTON_STEPS = 30
+_INSIDE = 1e-9          # parameter slack when deciding that a point lies in a cell
+_NEAREST = 8            # boundary elements tried per outside point
+
+
+def hex_order(faces):
+    """The 8 corners of a hexahedral cell (six quads, three at every corner) in trilinear bit order
+    with a right-handed (u, v, w) frame, or None when the cell is not such a hexahedron."""
+    pts = {p for f in faces for p in f}
+    if len(faces) != 6 or len(pts) != 8 or any(len(f) != 4 for f in faces):
+        return None
+    if any(sum(p in f for f in faces) != 3 for p in pts):
+        return None
+    v0, b, ab, a = faces[0]            # outward loop: (a, v0, b) turn => u along a, v along b
+    nbrs = {q for f in faces if v0 in f for q in (f[f.index(v0) - 1], f[(f.index(v0) + 1) % 4])}
+    (c,) = nbrs - {a, b}
+
+    def opposite(x, y):  # the corner diagonal to v0 in the face through v0, x and y
+        f = next(f for f in faces if {v0, x, y} <= set(f))
+        return f[(f.index(v0) + 2) % 4]
+
+    ac, bc = opposite(a, c), opposite(b, c)
+    (abc,) = pts - {v0, a, b, ab, c, ac, bc}
+    return [v0, a, b, ab, c, ac, bc, abc]
+
+
+def trilinear(u):
+    """Weights (m, 8) and their derivatives (m, 8, 3) at trilinear coordinates u (m, 3)."""
+    f = np.where(_BITS[None], u[:, None, :], 1.0 - u[:, None, :])         # (m, 8, 3) factors
+    df = np.where(_BITS[None], 1.0, -1.0)
+    w = f.prod(2)
+    dw = np.empty(f.shape)
+    for a in range(3):
+        others = [k for k in range(3) if k != a]
+        dw[:, :, a] = df[:, :, a] * f[:, :, others[0]] * f[:, :, others[1]]
+    return w, dw
+
+
+def barycentric_weights(lam):
+    """Weights (m, 8) of a tetrahedron's corners (then 4 unused) at barycentric lam (m, 3)."""
+    w = np.zeros((len(lam), 8))
+    w[:, 0] = 1.0 - lam.sum(1)
+    w[:, 1:4] = lam
+    return w
+
+
+_TET_DW = np.zeros((8, 3))
+_TET_DW[0] = -1.0
+_TET_DW[1:4] = np.eye(3)
+
+
+class Elements:
+    """The embedding elements of a refinement: trilinear hexahedra and tetrahedra.
+
+    ext: `Sparse` (n_ext, n) appending the extra points the tetrahedra need (cell centres, and
+    centroids of faces with more than four sides) to the refined points.
+    corners: (k, 8) indices into the extended points (tetrahedra use the first 4).
+    is_hex: (k,) bool. cell: (k,) refined cell of each element.
+    """
+
+    def __init__(self, refinement):
+        topo = refinement.topology
+        n = topo.n_points
+        extra_rows, extra_cols, extra_vals = [], [], []
+        n_extra = 0
+
+        def extra(points):
+            nonlocal n_extra
+            row = n + n_extra
+            n_extra += 1
+            extra_rows.extend([row] * len(points))
+            extra_cols.extend(points)
+            extra_vals.extend([1.0 / len(points)] * len(points))
+            return row
+
+        face_centre = {}
+        corners, is_hex, cell_of = [], [], []
+        for c, faces in enumerate(topo.cells):
+            order = hex_order(faces)
+            if order is not None:
+                corners.append(order)
+                is_hex.append(True)
+                cell_of.append(c)
+                continue
+            centre = extra(topo.cell_points(c))
+            for f in faces:
+                for a, b, d in face_triangles(f):
+                    if a < 0:
+                        key = tuple(sorted(f))
+                        if key not in face_centre:
+                            face_centre[key] = extra(list(f))
+                        a = face_centre[key]
+                    corners.append([a, d, b, centre, 0, 0, 0, 0])   # positive for outward (a, b, d)
+                    is_hex.append(False)
+                    cell_of.append(c)
+        rows = np.concatenate([np.arange(n), np.array(extra_rows, np.int64)])
+        cols = np.concatenate([np.arange(n), np.array(extra_cols, np.int64)])
+        vals = np.concatenate([np.ones(n), np.array(extra_vals)])
+        self.ext = Sparse(rows, cols, vals, (n + n_extra, n))
+        self.corners = np.array(corners, np.int64).reshape(-1, 8)
+        self.is_hex = np.array(is_hex, bool)
+        self.cell = np.array(cell_of, np.int64)
+        boundary_cells = {cs[0] for cs in topo.face_cells if len(cs) == 1}
+        self.on_boundary = np.isin(self.cell, list(boundary_cells))
+
+
+def locate(points, X, elements):
+    """Find the element holding each point.
+
+    points (V, 3); X (n_ext, 3) extended rest points. Returns (element (V,) with -1 where no
+    element holds the point, parameters (V, 3)).
+    """
+    V = len(points)
+    corners = elements.corners
+    hexes = elements.is_hex
+    cx = X[corners]                                                   # (k, 8, 3)
+    lo = np.where(hexes[:, None], cx.min(1), cx[:, :4].min(1))
+    hi = np.where(hexes[:, None], cx.max(1), cx[:, :4].max(1))
+    pi, ei = _bbox_pairs(points, lo, hi)
+    best = np.full(V, -1, np.int64)
+    param = np.zeros((V, 3))
+    if len(pi) == 0:
+        return best, param
+    margin = np.full(len(pi), -np.inf)
+    prm = np.zeros((len(pi), 3))
+    h = hexes[ei]
+    if h.any():
+        u, ok = invert_trilinear(points[pi[h]], cx[ei[h]])
+        prm[h] = u
+        margin[h] = np.where(ok, np.minimum(u, 1.0 - u).min(1), -np.inf)
+    t = ~h
+    if t.any():
+        lam = barycentric(points[pi[t]], cx[ei[t], :4])
+        prm[t] = lam
+        margin[t] = np.minimum(lam.min(1), 1.0 - lam.sum(1))
+    inside = margin >= -_INSIDE
+    pi, ei, margin, prm = pi[inside], ei[inside], margin[inside], prm[inside]
+    order = np.lexsort((-margin, pi))                  # per point, the most interior element first
+    pi, ei, prm = pi[order], ei[order], prm[order]
+    first = np.r_[True, pi[1:] != pi[:-1]]
+    best[pi[first]] = ei[first]
+    param[pi[first]] = prm[first]
+    return best, param
+
+
+def nearest_boundary(points, X, elements):
+    """For points outside the region: (element (V,), parameters (V, 3)) of the closest point of
+    the boundary elements, parameters clamped into the element."""
+    cand = np.flatnonzero(elements.on_boundary)
+    corners = elements.corners[cand]
+    hexes = elements.is_hex[cand]
+    cx = X[corners]
+    centre = np.where(hexes[:, None], cx.mean(1), cx[:, :4].mean(1))
+    V = len(points)
+    k = min(_NEAREST, len(cand))
+    near = np.empty((V, k), np.int64)
+    for s in range(0, V, 2048):
+        d = ((points[s:s + 2048, None, :] - centre[None]) ** 2).sum(2)
+        near[s:s + 2048] = np.argpartition(d, k - 1, axis=1)[:, :k]
+    pi = np.repeat(np.arange(V), k)
+    ei = near.ravel()
+    prm = np.zeros((len(pi), 3))
+    h = hexes[ei]
+    if h.any():
+        u, _ = invert_trilinear(points[pi[h]], cx[ei[h]])
+        prm[h] = np.clip(u, 0.0, 1.0)
+    t = ~h
+    if t.any():
+        lam = np.clip(barycentric(points[pi[t]], cx[ei[t], :4]), 0.0, None)
+        total = lam.sum(1, keepdims=True)
+        prm[t] = np.where(total > 1.0, lam / np.maximum(total, 1e-300), lam)
+    w = np.where(h[:, None], trilinear(prm)[0], barycentric_weights(prm))
+    pos = np.einsum("mk,mkc->mc", w, cx[ei])
+    dist = ((pos - points[pi]) ** 2).sum(1).reshape(V, k)
+    pick = np.argmin(dist, 1)
+    rows = np.arange(V) * k + pick
+    return cand[ei[rows]], prm[rows]
+
+
+def invert_trilinear(p, cx):
+    """Trilinear coordinates (m, 3) of points p (m, 3) in cells with corners cx (m, 8, 3), by
+    Newton's method from the centre, and whether it converged."""
+    u = np.full((len(p), 3), 0.5)
+    scale = np.abs(cx - cx.mean(1, keepdims=True)).max((1, 2)) + 1e-300
+    ok = np.zeros(len(p), bool)
+    active = np.arange(len(p))
+    for _ in range(_NEWTON_STEPS):
+        w, dw = trilinear(u[active])
+        x = np.einsum("mk,mkc->mc", w, cx[active])
+        J = np.einsum("mka,mkc->mca", dw, cx[active])
+        r = p[active] - x
+        done = np.abs(r).max(1) <= 1e-13 * scale[active]
+        ok[active[done]] = True
+        keep = ~done
+        active, J, r = active[keep], J[keep], r[keep]
+        if not len(active):
+            break
+        det = np.linalg.det(J)
+        good = np.abs(det) > 1e-300
+        step = np.zeros_like(r)
+        step[good] = np.linalg.solve(J[good], r[good][:, :, None])[:, :, 0]
+        u[active] = np.clip(u[active] + step, -4.0, 5.0)
+    return u, ok
+
+
+def barycentric(p, tx):
+    """Barycentric coordinates (m, 3) (of corners 1..3) of points p (m, 3) in tetrahedra (m, 4, 3)."""
+    M = (tx[:, 1:4] - tx[:, :1]).transpose(0, 2, 1)
+    det = np.linalg.det(M)
+    lam = np.full((len(p), 3), -np.inf)
+    good = np.abs(det) > 1e-300
+    lam[good] = np.linalg.solve(M[good], (p[good] - tx[good, 0])[:, :, None])[:, :, 0]
+    return lam
+
+
+def locate_in_tets(points, tets, margin):
+    """[(point, tet)] for points (m, 3) strictly inside tetrahedra (k, 4, 3) by `margin`."""
+    pi, ti = _bbox_pairs(points, tets.min(1), tets.max(1))
+    if not len(pi):
+        return []
+    lam = barycentric(points[pi], tets[ti])
+    inside = np.minimum(lam.min(1), 1.0 - lam.sum(1)) > margin
+    return list(zip(pi[inside].tolist(), ti[inside].tolist()))
+
+
+def _bbox_pairs(points, lo, hi):
+    """(point index, box index) pairs with the point inside the box (slightly enlarged), through a
+    uniform grid of about one box per grid cell."""
+    if len(points) == 0 or len(lo) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    pad = 1e-9 * (hi - lo).max() + 1e-300
+    lo, hi = lo - pad, hi + pad
+    glo, ghi = lo.min(0), hi.max(0)
+    h = max(float(np.median((hi - lo).max(1))), 1e-300)
+    dims = np.maximum(np.ceil((ghi - glo) / h).astype(np.int64), 1)
+    while dims.prod() > 8 * len(lo) + 64:
+        h *= 1.5
+        dims = np.maximum(np.ceil((ghi - glo) / h).astype(np.int64), 1)
+    i0 = np.clip(np.floor((lo - glo) / h).astype(np.int64), 0, dims - 1)
+    i1 = np.clip(np.floor((hi - glo) / h).astype(np.int64), 0, dims - 1)
+    span = i1 - i0 + 1
+    count = span.prod(1)
+    box = np.repeat(np.arange(len(lo)), count)
+    local = np.arange(len(box)) - np.repeat(np.cumsum(count) - count, count)
+    sx, sy = span[box, 0], span[box, 1]
+    cell = i0[box] + np.stack([local % sx, (local // sx) % sy, local // (sx * sy)], 1)
+    key = (cell[:, 2] * dims[1] + cell[:, 1]) * dims[0] + cell[:, 0]
+    order = np.argsort(key, kind="stable")
+    key, box = key[order], box[order]
+    pc = np.floor((points - glo) / h).astype(np.int64)
+    inside_grid = ((pc >= 0) & (pc < dims)).all(1)
+    pkey = (pc[:, 2] * dims[1] + pc[:, 1]) * dims[0] + pc[:, 0]
+    start = np.searchsorted(key, pkey)
+    stop = np.searchsorted(key, pkey, side="right")
+    n = np.where(inside_grid, stop - start, 0)
+    pi = np.repeat(np.arange(len(points)), n)
+    k = np.repeat(start, n) + (np.arange(len(pi)) - np.repeat(np.cumsum(n) - n, n))
+    bi = box[k]
+    within = ((points[pi] >= lo[bi]) & (points[pi] <= hi[bi])).all(1)
+    return pi[within], bi[within]

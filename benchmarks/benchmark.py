@@ -60,6 +60,80 @@ def deformed_points(lat, seed=0):
     return p
 
 
+def cage_shapes():
+    """The benchmark's 20-cell cages around the icosphere (radius 0.45): a box of 5 x 2 x 2 hexahedra,
+    and a disc (a quad with a ring of four quads, whose corners are extraordinary) extruded into
+    four layers, like a limb."""
+    box = vp.box_cage((2, 2, 5), ((-0.5,) * 3, (0.5,) * 3))
+    ang = np.arange(4) * np.pi / 2 + np.pi / 4
+    disc = np.concatenate([np.stack([r * np.cos(ang), r * np.sin(ang), 0 * ang], 1) for r in (0.3, 0.7)])
+    polys = [[0, 1, 2, 3]] + [[i, (i + 1) % 4, 4 + (i + 1) % 4, 4 + i] for i in range(4)]
+    limb = vp.Cage(*vp.extrude(disc - [0, 0, 0.5], polys, (0, 0, 1.0), 4))
+    return {"box 2x2x5": box, "disc x 4 layers": limb}
+
+
+def cage_figures(sizes, repeat, depth=3):
+    """Bind, deform and XYZ solve (float32, as the extension) with the 20-cell cages at `depth`."""
+    rows = []
+    for name, cage in cage_shapes().items():
+        P = cage.rest_points.copy()
+        angle = 0.5 * P[:, 2]
+        c, s = np.cos(angle), np.sin(angle)
+        P[:, 0], P[:, 1] = c * P[:, 0] - s * P[:, 1], s * P[:, 0] + c * P[:, 1]
+        P[:, 2] *= 0.6
+        for sub in sizes:
+            verts, tris = vp.icosphere(sub, RADIUS)
+            rep = max(3, repeat // 2) if sub >= 8 else repeat
+            t0 = time.perf_counter()
+            b = vp.bind(cage, verts, tris, depth=depth, dtype=np.float32)
+            bind_ms = (time.perf_counter() - t0) * 1e3
+            b.deform(P)
+            d_med, _, _ = timed(lambda: b.deform(P), rep)
+            b.solve(P, axes="XYZ")
+            s_med, _, sol = timed(lambda: b.solve(P, axes="XYZ"), rep)
+            V = len(verts)
+            row = {"cage": name, "n_cells": cage.n_cells, "n_points": cage.n_points, "depth": depth,
+                   "n_verts": V, "n_outside": int(b.n_outside), "bind_ms": bind_ms,
+                   "deform_ms_median": d_med, "solve_xyz_ms_median": s_med,
+                   "solve_xyz_ns_per_vertex": s_med * 1e6 / V, "bytes_per_vertex": b.nbytes / V,
+                   "plain_change_pct": 100.0 * (sol.plain_volume / b.rest_volume - 1.0),
+                   "relative_error": abs(sol.volume - sol.target_volume) / abs(sol.target_volume)}
+            rows.append(row)
+            log(f"  cage {name} depth {depth}: V={V:,} bind {bind_ms:7.0f} ms | deform {d_med:6.1f} ms | "
+                f"solve XYZ {s_med:6.1f} ms ({row['solve_xyz_ns_per_vertex']:.0f} ns/v) | plain "
+                f"{row['plain_change_pct']:+.1f}% -> rel err {row['relative_error']:.1e}")
+            del b, sol
+    for name in cage_shapes():
+        mine = [r for r in rows if r["cage"] == name]
+        if len(mine) > 1:
+            fit = np.polyfit(np.log([r["n_verts"] for r in mine]), np.log([r["solve_xyz_ms_median"] for r in mine]), 1)
+            for r in mine:
+                r["solve_fitted_exponent"] = float(fit[0])
+    return rows
+
+
+def cage_convergence(n=6, depths=(0, 1, 2, 3), seed=7):
+    """Max distance, over interior points, between a box cage's deformation and the tricubic uniform
+    B-spline FFD of the same control points, per depth (MacCracken & Joy: the interior refinement
+    rules are the B-spline's, so the error should fall about 4x per level)."""
+    cage = vp.box_cage((n - 1,) * 3)
+    h = 2.0 / (n - 1)
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-1 + 2 * h, 1 - 2 * h, (1500, 3))
+    P = cage.rest_points + rng.normal(0, 0.1, (cage.n_points, 3))
+
+    def basis(t):
+        t = np.abs(t)
+        return np.where(t < 1, (4 - 6 * t ** 2 + 3 * t ** 3) / 6, np.where(t < 2, (2 - t) ** 3 / 6, 0.0))
+    t = (x + 1) / h
+    Nu, Nv, Nw = (basis(t[:, a, None] - np.arange(n)) for a in range(3))
+    reference = np.einsum("vk,vj,vi->vkji", Nw, Nv, Nu).reshape(len(x), -1) @ P
+    errors = [float(np.abs(vp.bind(cage, x, np.array([[0, 1, 2]]), depth=d).deform(P) - reference).max())
+              for d in depths]
+    log("  cage convergence to the tricubic B-spline FFD by depth: " + ", ".join(f"{e:.2e}" for e in errors))
+    return {"cage_cells": (n - 1) ** 3, "depths": list(depths), "max_error": errors}
+
+
 def timed(fn, repeat):
     """(median ms, min ms, last result) of `repeat` calls of fn()."""
     times, out = [], None
@@ -445,6 +519,28 @@ def markdown(report):
                          f"{row['gpu_upload_ms']:.0f} ms |")
     elif gpu:
         lines += ["", f"GPU path not measured: {gpu['reason']}"]
+    cages = report.get("cages")
+    if cages:
+        blender = {r["n_verts"]: r["blender"]["execution_time_ms_median"] for r in report["results"] if r.get("blender")}
+        lines += ["", f"Cages of arbitrary topology (20 cells, depth {cages[0]['depth']}, float32 as in the "
+                  "extension; Blender has no such modifier, its Lattice modifier's time on the same mesh is "
+                  "given for scale):", "",
+                  "| cage | vertices | bind | deform | XYZ solve | ns per vertex | Lattice modifier | volume error |",
+                  "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in cages:
+            bl = blender.get(r["n_verts"])
+            lines.append(f"| {r['cage']} | {r['n_verts']:,} | {r['bind_ms'] / 1e3:.1f} s | {r['deform_ms_median']:.1f} ms | "
+                         f"{r['solve_xyz_ms_median']:.1f} ms | {r['solve_xyz_ns_per_vertex']:.0f} | "
+                         f"{f'{bl:.1f} ms' if bl else '-'} | {r['relative_error']:.0e} |")
+        fits = {r["cage"]: r.get("solve_fitted_exponent") for r in cages if r.get("solve_fitted_exponent")}
+        if fits:
+            lines += ["", "Cage solve time grows as " + ", ".join(f"V^{k:.2f} ({n})" for n, k in fits.items())
+                      + " (1.00 = linear)."]
+    conv = report.get("cage_convergence")
+    if conv:
+        lines += ["", f"A {conv['cage_cells']}-cell box cage against the tricubic B-spline FFD of the same "
+                  "control points (interior points, lattice spacing 0.4): max distance "
+                  + ", ".join(f"{e:.2g} at depth {d}" for d, e in zip(conv["depths"], conv["max_error"])) + "."]
     lin = report["summary"]["linearity"]
     if "fitted_exponent" in lin["float32"]["solve_xyz"]:
         lines += ["", f"Solve time grows as V^{lin['float32']['solve_xyz']['fitted_exponent']:.2f} (float32) and "
@@ -474,6 +570,7 @@ def main(argv=None):
     ap.add_argument("--no-blender", action="store_true", help="skip Blender's Lattice modifier (no bpy needed)")
     ap.add_argument("--update-readme", action="store_true", help="rewrite README.md's benchmark table")
     ap.add_argument("--no-gpu", action="store_true", help="skip the GPU (compute shader) path")
+    ap.add_argument("--no-cage", action="store_true", help="skip the cages of arbitrary topology")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     if not sizes or args.repeat < 1:
@@ -493,6 +590,8 @@ def main(argv=None):
         vp.bind(wlat, wv, wf, dtype=dt).solve(deformed_points(wlat), axes="XYZ")
     results = [bench_size(s, args.repeat, use_blender) for s in sizes]
     gpu = gpu_figures([s for s in sizes if s >= 7], args.repeat) if use_blender and not args.no_gpu else None
+    cages = None if args.no_cage else cage_figures(sizes, args.repeat)
+    convergence = None if args.no_cage else cage_convergence()
     report = {
         "benchmark": "vpffd",
         "lattice": {"shape": list(LATTICE_SHAPE), "interpolation": "BSPLINE", "bounds": [[-0.5] * 3, [0.5] * 3],
@@ -502,6 +601,8 @@ def main(argv=None):
         "results": results,
         "summary": summarize(results, use_blender),
         "gpu": gpu,
+        "cages": cages,
+        "cage_convergence": convergence,
         "total_seconds": None,
     }
     report["total_seconds"] = time.perf_counter() - t0

@@ -34,16 +34,21 @@ class CageBinding(BindingBase):
 
     def _forward(self, d):
         y = self._extended(np.asarray(d, np.float64)).astype(self.dtype)
-        return np.einsum("sk,sk->s", self.tw, y[self.tidx])
+        # Vertices of one run share their 8 refined points: gather once per run, then repeat.
+        Y = np.repeat(y[self.run_corners], self.run_len, axis=0)
+        return np.einsum("sk,sk->s", self.tw, Y)
+
+    def _run_sums(self, g):
+        """(n_runs, 8) per-run sums of the weights times g (n_slots,)."""
+        return np.add.reduceat(self.tw * np.asarray(g, self.dtype)[:, None], self.run_start, axis=0)
 
     def _transpose(self, g):
-        z = np.bincount(self.tidx.ravel(), (self.tw * np.asarray(g, self.dtype)[:, None]).ravel(),
-                        self.n_ext)
+        z = np.bincount(self.run_corners.ravel(), self._run_sums(g).ravel(), self.n_ext)
         return self._extended_transpose(z)
 
     def _island_transpose(self, g, k):
-        keys = (self._slot_island[:, None] * self.n_ext + self.tidx).ravel()
-        z = np.bincount(keys, (self.tw * np.asarray(g, self.dtype)[:, None]).ravel(), k * self.n_ext)
+        keys = (self.run_island[:, None] * self.n_ext + self.run_corners).ravel()
+        z = np.bincount(keys, self._run_sums(g).ravel(), k * self.n_ext)
         return self._extended_transpose(z.reshape(k, self.n_ext).T).T
 
     def _rows(self, slots):
@@ -127,5 +132,12 @@ def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3,
     b.param = param_for_weights[order]
     b.is_hex = hexes[order]
     b.elem = np.where(elem >= 0, elem, -1)[order]       # -1: outside (a translation)
+    # Runs: consecutive slots of one island that share the same refined points.
+    key = np.stack([labels[order], elem_for_weights[order]], 1)
+    new_run = np.r_[True, (key[1:] != key[:-1]).any(1)]
+    b.run_start = np.flatnonzero(new_run)
+    b.run_len = np.diff(np.r_[b.run_start, V])
+    b.run_corners = b.tidx[b.run_start]
+    b.run_island = b._slot_island[b.run_start]
     finish(b, rel, tris, labels, V)
     return b

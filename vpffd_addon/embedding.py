@@ -13,7 +13,7 @@ from .sparse import Sparse
 _BITS = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], np.float64)
 _NEWTON_STEPS = 30
 _INSIDE = 1e-9          # parameter slack when deciding that a point lies in a cell
-_NEAREST = 8            # boundary elements tried per outside point
+_NEAREST = 4            # boundary elements tried per outside point
 
 
 def hex_order(faces):
@@ -39,14 +39,15 @@ def hex_order(faces):
 
 def trilinear(u):
     """Weights (m, 8) and their derivatives (m, 8, 3) at trilinear coordinates u (m, 3)."""
-    f = np.where(_BITS[None], u[:, None, :], 1.0 - u[:, None, :])         # (m, 8, 3) factors
-    df = np.where(_BITS[None], 1.0, -1.0)
-    w = f.prod(2)
-    dw = np.empty(f.shape)
-    for a in range(3):
-        others = [k for k in range(3) if k != a]
-        dw[:, :, a] = df[:, :, a] * f[:, :, others[0]] * f[:, :, others[1]]
-    return w, dw
+    bx, by, bz = (_BITS[:, a].astype(np.int64) for a in range(3))
+    F = np.stack([1.0 - u, u], 1)                       # (m, 2, 3): factor for bit 0 and bit 1
+    fx, fy, fz = F[:, bx, 0], F[:, by, 1], F[:, bz, 2]  # (m, 8) each
+    sign = np.array([-1.0, 1.0])
+    dw = np.empty((len(u), 8, 3))
+    dw[:, :, 0] = sign[bx] * fy * fz
+    dw[:, :, 1] = fx * sign[by] * fz
+    dw[:, :, 2] = fx * fy * sign[bz]
+    return fx * fy * fz, dw
 
 
 def barycentric_weights(lam):
@@ -167,15 +168,16 @@ def nearest_boundary(points, X, elements):
     V = len(points)
     k = min(_NEAREST, len(cand))
     near = np.empty((V, k), np.int64)
-    for s in range(0, V, 2048):
-        d = ((points[s:s + 2048, None, :] - centre[None]) ** 2).sum(2)
-        near[s:s + 2048] = np.argpartition(d, k - 1, axis=1)[:, :k]
+    c2 = (centre ** 2).sum(1)
+    for s in range(0, V, 4096):
+        d = c2[None] - 2.0 * points[s:s + 4096] @ centre.T     # |p - c|^2 - |p|^2
+        near[s:s + 4096] = np.argpartition(d, k - 1, axis=1)[:, :k] if k < len(cand) else np.arange(k)
     pi = np.repeat(np.arange(V), k)
     ei = near.ravel()
     prm = np.zeros((len(pi), 3))
     h = hexes[ei]
     if h.any():
-        u, _ = invert_trilinear(points[pi[h]], cx[ei[h]])
+        u, _ = invert_trilinear(points[pi[h]], cx[ei[h]], steps=12)
         prm[h] = np.clip(u, 0.0, 1.0)
     t = ~h
     if t.any():
@@ -190,14 +192,14 @@ def nearest_boundary(points, X, elements):
     return cand[ei[rows]], prm[rows]
 
 
-def invert_trilinear(p, cx):
+def invert_trilinear(p, cx, steps=_NEWTON_STEPS):
     """Trilinear coordinates (m, 3) of points p (m, 3) in cells with corners cx (m, 8, 3), by
-    Newton's method from the centre, and whether it converged."""
+    Newton's method from the centre, and whether it converged within `steps`."""
     u = np.full((len(p), 3), 0.5)
     scale = np.abs(cx - cx.mean(1, keepdims=True)).max((1, 2)) + 1e-300
     ok = np.zeros(len(p), bool)
     active = np.arange(len(p))
-    for _ in range(_NEWTON_STEPS):
+    for _ in range(steps):
         w, dw = trilinear(u[active])
         x = np.einsum("mk,mkc->mc", w, cx[active])
         J = np.einsum("mka,mkc->mca", dw, cx[active])

@@ -268,3 +268,42 @@ def test_bind_arguments_are_checked():
         vp.bind(vp.Lattice((2, 2, 2)), 0.4 * v, f, depth=2)
     with pytest.raises(ValueError, match="shape"):
         vp.bind(cage, 0.5 * v, f).deform(np.zeros((7, 3)))
+
+
+# ---------------------------------------------------------------- the refinement against a reference
+
+def _mixed_cage():
+    """A hexahedron, a prism, a pyramid and a tetrahedron glued face to face, plus a hexagonal
+    prism (a cell with two 6-sided faces)."""
+    P = [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1],
+         [2, 0, 0], [2, 0, 1], [0.5, 0.5, 2.0]]
+    cells = [[0, 1, 2, 3, 4, 5, 6, 7],
+             [1, 8, 2, 5, 9, 6],                  # prism on the hexahedron's x = 1 face
+             [4, 5, 6, 7, 10]]                    # pyramid on top
+    ang = np.arange(6) * np.pi / 3
+    ring = np.stack([3 + 0.6 * np.cos(ang), 3 + 0.6 * np.sin(ang), 0 * ang], 1)
+    base = len(P)
+    P = np.concatenate([np.array(P, float), ring, ring + [0, 0, 1]])
+    bottom, top = list(range(base, base + 6)), list(range(base + 6, base + 12))
+    faces = [tuple(reversed(bottom)), tuple(top)] + [(bottom[i], bottom[(i + 1) % 6], top[(i + 1) % 6], top[i])
+                                                     for i in range(6)]
+    return vp.Cage(P, cells + [faces])
+
+
+@pytest.mark.parametrize("name", ["box", "jittered", "disc", "mixed"])
+def test_vectorised_refinement_equals_the_reference_rules(name):
+    try:
+        from .cage_reference import reference_levels
+    except ImportError:
+        from cage_reference import reference_levels
+    rng = np.random.default_rng(2)
+    cage = {"box": lambda: box_cage((2, 3, 1)), "jittered": lambda: jittered_box_cage(rng, (2, 2, 2)),
+            "disc": lambda: disc_cage(5, layers=2), "mixed": _mixed_cage}[name]()
+    for depth in (1, 2):
+        expected, n_cells = reference_levels(cage, depth)
+        region = cage.region(depth)
+        got = region.points
+        assert region.complex.n_cells == n_cells and len(got) == len(expected)
+        # Numbering differs; the point sets must agree.
+        key = lambda a: a[np.lexsort(np.round(a, 9).T[::-1])]
+        np.testing.assert_allclose(key(got), key(expected), atol=1e-12)

@@ -58,43 +58,10 @@ class Topology:
                 self.edge_cells[self.edge_id[ekey]].append(c)
             for p in {p for f in faces for p in f}:
                 self.point_cells[p].append(c)
-        self.point_edges = [[] for _ in range(n_points)]
-        for e, (a, b) in enumerate(self.edge_verts):
-            self.point_edges[a].append(e)
-            self.point_edges[b].append(e)
-        self.point_faces = [[] for _ in range(n_points)]
-        for fid, f in enumerate(self.face_verts):
-            for p in f:
-                self.point_faces[p].append(fid)
 
     def cell_points(self, c):
         """Sorted distinct points of cell c."""
         return sorted({p for f in self.cells[c] for p in f})
-
-    def classify(self):
-        """Boundary control of section 3, decided from the topology alone.
-
-        Returns (boundary_face (n_faces,) bool, sharp_edge (n_edges,) bool, boundary_edge (n_edges,)
-        bool, point_kind (n_points,) int: 0 interior, 1 smooth boundary, 2 crease, 3 corner).
-        A face is on the boundary when one cell holds it. An edge is sharp when it lies on the
-        boundary and one cell holds it (the edges of a box, the rims of an extruded disc); this is
-        the paper's rule of "edges joining vertices in one or two cells" stated on the edge itself,
-        so that a cage one cell thick is not creased across its faces. A point is a corner when
-        three or more sharp edges meet there (which includes every point of only one cell), a crease
-        point when two do.
-        """
-        boundary_face = np.array([len(c) == 1 for c in self.face_cells], bool)
-        n_edges = len(self.edge_verts)
-        boundary_edge = np.array([boundary_face[self.edge_faces[e]].any() for e in range(n_edges)], bool)
-        sharp = boundary_edge & np.array([len(c) == 1 for c in self.edge_cells], bool)
-        ev = np.array(self.edge_verts, np.int64).reshape(-1, 2)
-        n_sharp = np.bincount(ev[sharp].ravel(), minlength=self.n_points)
-        on_boundary = np.zeros(self.n_points, bool)
-        on_boundary[ev[boundary_edge].ravel()] = True
-        kind = np.where(on_boundary, 1, 0)
-        kind[n_sharp == 2] = 2
-        kind[n_sharp >= 3] = 3
-        return boundary_face, sharp, boundary_edge, kind
 
 
 def _parse_cell(i, cell, n_points):

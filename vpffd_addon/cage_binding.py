@@ -94,7 +94,7 @@ def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3,
     V = b.n_verts
     b.depth, b.outside = int(depth), mode
     b.refinement = ref = cage.region(depth)
-    b.elements = el = Elements(ref)
+    b.elements = el = Elements(cage, ref)
     X = el.ext.matvec(ref.points)
     b.n_ext = len(X)
     elem, param = locate(verts, X, el)

@@ -69,12 +69,54 @@ class Elements:
     ext: `Sparse` (n_ext, n) appending the extra points the tetrahedra need (cell centres, and
     centroids of faces with more than four sides) to the refined points.
     corners: (k, 8) indices into the extended points (tetrahedra use the first 4).
-    is_hex: (k,) bool. cell: (k,) refined cell of each element.
+    is_hex: (k,) bool. cell: (k,) refined cell of each element. on_boundary: (k,) whether that
+    cell has a face on the region's boundary.
     """
 
-    def __init__(self, refinement):
-        topo = refinement.topology
-        n = topo.n_points
+    def __init__(self, cage, refinement):
+        cx = refinement.complex
+        if refinement.depth == 0:
+            self._from_cells(cx.n_points, cage.cells)
+        else:
+            self._from_refinement(refinement)
+        boundary_cells = np.unique(cx.cell[(cx.face_cells == 1)[cx.loop_face]])
+        self.on_boundary = np.isin(self.cell, boundary_cells)
+
+    def _from_refinement(self, ref):
+        """After a refinement: hexahedra where the parent point had valence 3 (their corners come
+        from the refinement); the other cells (type n > 3) as 4n tetrahedra about their centre."""
+        cx = ref.complex
+        n = cx.n_points
+        tet_cells = np.flatnonzero(ref.valence != 3)
+        # The centre of every type-n cell: mean of its distinct points.
+        is_tet_cell = np.zeros(cx.n_cells, bool)
+        is_tet_cell[tet_cells] = True
+        centre_row = np.full(cx.n_cells, -1, np.int64)
+        centre_row[tet_cells] = n + np.arange(len(tet_cells))
+        loops = np.flatnonzero(is_tet_cell[cx.cell])
+        pairs = np.unique(np.stack([np.repeat(cx.cell[loops], 4), cx.loops[loops, :4].ravel()], 1), axis=0)
+        count = np.bincount(pairs[:, 0], minlength=cx.n_cells)
+        rows = np.concatenate([np.arange(n), centre_row[pairs[:, 0]]])
+        cols = np.concatenate([np.arange(n), pairs[:, 1]])
+        vals = np.concatenate([np.ones(n), 1.0 / count[pairs[:, 0]]])
+        self.ext = Sparse(rows, cols, vals, (n + len(tet_cells), n))
+        # Two triangles per quad, split by the diagonal through its lowest point (the same split
+        # from both sides of a face); tetrahedron (a, c, b, centre) for outward (a, b, c).
+        q = cx.loops[loops, :4]
+        q = np.take_along_axis(q, (np.argmin(q, 1)[:, None] + np.arange(4)) % 4, 1)
+        centre = centre_row[cx.cell[loops]]
+        tets = np.concatenate([np.stack([q[:, 0], q[:, 2], q[:, 1], centre], 1),
+                               np.stack([q[:, 0], q[:, 3], q[:, 2], centre], 1)])
+        n_hex = len(ref.hex_cells)
+        self.corners = np.zeros((n_hex + len(tets), 8), np.int64)
+        self.corners[:n_hex] = ref.hex_corners
+        self.corners[n_hex:, :4] = tets
+        self.is_hex = np.r_[np.ones(n_hex, bool), np.zeros(len(tets), bool)]
+        self.cell = np.r_[ref.hex_cells, np.tile(cx.cell[loops], 2)]
+
+    def _from_cells(self, n, cells):
+        """The cage's own cells (depth 0): hexahedra trilinear, any other cell as tetrahedra about
+        its centre (faces of more than four sides about their centroid)."""
         extra_rows, extra_cols, extra_vals = [], [], []
         n_extra = 0
 
@@ -89,14 +131,14 @@ class Elements:
 
         face_centre = {}
         corners, is_hex, cell_of = [], [], []
-        for c, faces in enumerate(topo.cells):
+        for c, faces in enumerate(cells):
             order = hex_order(faces)
             if order is not None:
                 corners.append(order)
                 is_hex.append(True)
                 cell_of.append(c)
                 continue
-            centre = extra(topo.cell_points(c))
+            centre = extra(sorted({p for f in faces for p in f}))
             for f in faces:
                 for a, b, d in face_triangles(f):
                     if a < 0:
@@ -114,8 +156,6 @@ class Elements:
         self.corners = np.array(corners, np.int64).reshape(-1, 8)
         self.is_hex = np.array(is_hex, bool)
         self.cell = np.array(cell_of, np.int64)
-        boundary_cells = {cs[0] for cs in topo.face_cells if len(cs) == 1}
-        self.on_boundary = np.isin(self.cell, list(boundary_cells))
 
 
 def locate(points, X, elements):

@@ -67,10 +67,11 @@ def _float_attribute(mesh, name, values=None):
         out = np.empty(len(mesh.vertices), np.float32)
         attr.data.foreach_get("value", out)
         return out.astype(np.float64)
+    data = meshio.float32_or_raise(values, f"the values of '{name}'")
     if attr is not None:
         mesh.attributes.remove(attr)
     attr = mesh.attributes.new(name, "FLOAT", "POINT")
-    attr.data.foreach_set("value", np.asarray(values, np.float32))
+    attr.data.foreach_set("value", data)
     return attr
 
 
@@ -205,6 +206,13 @@ def update(obj, depsgraph, force=False):
     go to the panel (`stats(obj)['error']`) and the console. Returns True when offsets were written.
     `force` solves even when the inputs did not change and the modifier is switched off (Bind,
     Apply, Check Folds and Bake need the solve)."""
+    # Overflow is detected on the results and reported in words; NumPy's own warnings would only
+    # repeat it on the console for every frame.
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        return _update(obj, depsgraph, force)
+
+
+def _update(obj, depsgraph, force):
     s = obj.vpffd
     uid = obj.session_uid
     try:
@@ -281,9 +289,10 @@ def update(obj, depsgraph, force=False):
             verts, volume, plain, warnings = sol.verts, sol.volume, sol.plain_volume, list(sol.warnings)
             used_points = sol.points
         else:
-            verts = binding.deform(P)
-            volume = plain = None
-            warnings = []
+            # No correction: the plain deformation, its volume measured as the solver measures
+            # (a closed mesh's islands about their own centres, not about the lattice centre).
+            sol = binding.solve(P, axes="", preserve_volume=False)
+            verts, volume, plain, warnings = sol.verts, sol.volume, sol.plain_volume, []
             used_points = P
         core_seconds = time.perf_counter() - t_core
         offsets = meshio.transform(verts, np.linalg.inv(L)) - state.rest
@@ -299,8 +308,6 @@ def update(obj, depsgraph, force=False):
         info = dict(error=None, seconds=seconds, core_seconds=core_seconds, warnings=warnings,
                     rest_volume=rest_volume, backend=backend, backend_reason=backend_reason,
                     closed=binding.is_closed, n_verts=binding.n_verts, folds=None)
-        if volume is None:  # no correction: measure what the plain deformation does
-            volume = plain = vp.signed_volume(verts, state.tris, origin=lattice.centre)
         if rest_volume:
             info["volume_percent"] = 100.0 * volume / rest_volume
             info["plain_percent"] = 100.0 * plain / rest_volume

@@ -50,10 +50,26 @@ def on_load(*_args):
         print(f"VP-FFD: after loading: {exc}")
 
 
+@persistent
+def on_undo(*_args):
+    """Undo and Redo restore the settings, attributes and offsets but not the engine's cached
+    bindings and panel figures: drop them and solve the restored state, so the panel describes
+    what is shown."""
+    engine.forget()
+    try:
+        context = bpy.context
+        if context.scene is not None:
+            _guarded(context.scene, context.evaluated_depsgraph_get())
+    except Exception as exc:
+        print(f"VP-FFD: after undo: {exc}")
+
+
 _HANDLERS = (
     (bpy.app.handlers.frame_change_post, on_frame_change),
     (bpy.app.handlers.depsgraph_update_post, on_depsgraph_update),
     (bpy.app.handlers.load_post, on_load),
+    (bpy.app.handlers.undo_post, on_undo),
+    (bpy.app.handlers.redo_post, on_undo),
 )
 
 

@@ -101,15 +101,26 @@ def vertex_group_weights(obj, group_name):
     return w.astype(np.float64)
 
 
+def float32_or_raise(values, what):
+    """`values` as a contiguous float32 array; ValueError when some are not finite there (values
+    finite in float64 can exceed float32's range, 3.4e38), so that nothing non-finite is written."""
+    out = np.ascontiguousarray(values, dtype=np.float32)
+    if not np.isfinite(out).all():
+        raise ValueError(f"{what} exceed what Blender can store (float32): the lattice points or "
+                         "the object scales are extreme; nothing was written")
+    return out
+
+
 def write_offsets(mesh, offsets):
     """Store (V, 3) offsets in the mesh's float-vector point attribute that the VP-FFD Geometry
     Nodes modifier adds to the positions. The vertex coordinates themselves are never written."""
+    values = float32_or_raise(offsets, "the offsets")
     attr = mesh.attributes.get(OFFSET_ATTRIBUTE)
     if attr is None or attr.data_type != "FLOAT_VECTOR" or attr.domain != "POINT":
         if attr is not None:
             mesh.attributes.remove(attr)
         attr = mesh.attributes.new(OFFSET_ATTRIBUTE, "FLOAT_VECTOR", "POINT")
-    attr.data.foreach_set("vector", np.ascontiguousarray(offsets, dtype=np.float32).ravel())
+    attr.data.foreach_set("vector", values.ravel())
     mesh.update_tag()
 
 

@@ -365,7 +365,8 @@ def _watchdog_file():
 # Found by this fuzzer and fixed since (the regression tests at the end show them): a violation
 # that matches one of them again fails the run, labelled.
 FIXED_BUGS = {"operator-raises-with-modifier-off", "apply-with-modifier-off", "flat-lattice-blowup",
-              "failed-bind-changes-weights", "linked-duplicate-of-bound-mesh", "stale-signature"}
+              "failed-bind-changes-weights", "linked-duplicate-of-bound-mesh", "stale-signature",
+              "stale-after-undo", "float32-attribute-overflow", "plain-volume-about-lattice-centre"}
 
 
 def _known(bug, detail):
@@ -1397,8 +1398,7 @@ def test_fixed_bug_stale_signature(ext, change):
     assert err <= 1e-6, f"the display is {err:.3g} away from a fresh solve of the same inputs"
 
 
-@pytest.mark.xfail(strict=True, reason="known bug stale-after-undo (see KNOWN_BUGS)")
-def test_known_bug_stale_after_undo(ext):
+def test_fixed_bug_stale_after_undo(ext):
     """Bind a sphere, clear its lattice (the panel says 'the lattice is missing'), Undo: the
     lattice is back and the mesh deformed again, but the panel still shows the error. Expected:
     after Undo, the panel describes the restored inputs."""
@@ -1423,9 +1423,8 @@ def test_known_bug_stale_after_undo(ext):
     assert error == _engine().stats(ob).get("error"), f"the panel says {error!r} after Undo"
 
 
-@pytest.mark.xfail(strict=True, reason="known bug float32-attribute-overflow (see KNOWN_BUGS)")
 @pytest.mark.parametrize("attribute", ["vpffd_offset", "vpffd_jacobian"])
-def test_known_bug_float32_attribute_overflow(ext, attribute):
+def test_fixed_bug_float32_attribute_overflow(ext, attribute):
     """(vpffd_offset) Bind a sphere (no correction) to a 3x3x3 lattice, scale the mesh object by
     1e-6 and move one lattice point to 1e33: every offset is inf, so is the evaluated mesh, no
     error. (vpffd_jacobian) Fold attribute on, every third lattice point moved to +-1e20: the
@@ -1454,8 +1453,7 @@ def test_known_bug_float32_attribute_overflow(ext, attribute):
     assert np.isfinite(_evaluated_co(ob)).all()
 
 
-@pytest.mark.xfail(strict=True, reason="known bug plain-volume-about-lattice-centre (see KNOWN_BUGS)")
-def test_known_bug_plain_volume_about_lattice_centre(ext, monkeypatch):
+def test_fixed_bug_plain_volume_about_lattice_centre(ext, monkeypatch):
     """The fuzzer's sequence: a sphere bound with Correction None to a 1x1x1 lattice; move the
     mesh object ~0.1 and scale it by 1e-6 (the mesh is undeformed): the panel reports 100.544%,
     the mesh has 100.000%."""

@@ -216,3 +216,29 @@ def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
     with bpy.context.temp_override(object=ball, active_object=ball, selected_objects=[ball]):
         assert bpy.ops.object.vpffd_unbind() == {"FINISHED"}
     assert np.array_equal(_co(ball), original)
+
+
+def test_overlay_draws_the_corrected_cage_and_folds_are_counted(ext):
+    eng = ext.module.operators.engine
+    ball = _sphere()
+    cage_ob = _box_cage_around(ball, resolution=(2, 1, 1))
+    _squash_key(cage_ob, amount=0.6)
+    assert _bind(ball, lattice=cage_ob, axes="XY", cage_depth=1, show_overlay=True) == {"FINISHED"}
+    bpy.context.scene.frame_set(15)
+    points, edges, label = eng.overlay_geometry(ball)
+    assert len(points) == len(cage_ob.data.vertices) and len(edges) == len(cage_ob.data.edges)
+    assert label.endswith("% volume")
+    M = np.array(cage_ob.matrix_world)
+    user = _co(cage_ob, evaluated=True) @ M[:3, :3].T + M[:3, 3]
+    assert np.abs(points - user).max() > 1e-3                 # the correction moved the cage
+    assert np.abs((points - user)[:, 2]).max() <= 1e-6        # XY: no vertical motion
+    assert eng.stats(ball)["folds"] == 0
+    # Fold the cage: one layer of points pushed through the other.
+    co = _co(cage_ob)
+    top = co[:, 2] > co[:, 2].mean()
+    co[top, 2] = co[:, 2].min() - 0.5
+    ball.vpffd.axes = "NONE"
+    cage_ob.data.shape_keys.key_blocks["Basis"].data.foreach_set("co", co.astype(np.float32).ravel())
+    cage_ob.data.vertices.foreach_set("co", co.astype(np.float32).ravel())
+    bpy.context.scene.frame_set(1)
+    assert eng.stats(ball)["folds"] == len(ball.data.vertices)

@@ -189,6 +189,8 @@ def locate(points, X, elements):
         margin[t] = np.minimum(lam.min(1), 1.0 - lam.sum(1))
     inside = margin >= -_INSIDE
     pi, ei, margin, prm = pi[inside], ei[inside], margin[inside], prm[inside]
+    if not len(pi):
+        return best, param
     order = np.lexsort((-margin, pi))                  # per point, the most interior element first
     pi, ei, prm = pi[order], ei[order], prm[order]
     first = np.r_[True, pi[1:] != pi[:-1]]

@@ -39,15 +39,17 @@ def hex_order(faces):
 
 def trilinear(u):
     """Weights (m, 8) and their derivatives (m, 8, 3) at trilinear coordinates u (m, 3)."""
-    bx, by, bz = (_BITS[:, a].astype(np.int64) for a in range(3))
-    F = np.stack([1.0 - u, u], 1)                       # (m, 2, 3): factor for bit 0 and bit 1
-    fx, fy, fz = F[:, bx, 0], F[:, by, 1], F[:, bz, 2]  # (m, 8) each
-    sign = np.array([-1.0, 1.0])
-    dw = np.empty((len(u), 8, 3))
-    dw[:, :, 0] = sign[bx] * fy * fz
-    dw[:, :, 1] = fx * sign[by] * fz
-    dw[:, :, 2] = fx * fy * sign[bz]
-    return fx * fy * fz, dw
+    m = len(u)
+    f = np.stack([1.0 - u, u], 1)                          # (m, 2, 3): factors for bit 0 and 1
+    fx, fy, fz = f[:, None, None, :, 0], f[:, None, :, None, 1], f[:, :, None, None, 2]
+    d = np.array([-1.0, 1.0])
+    dx, dy, dz = d[None, None, None, :], d[None, None, :, None], d[None, :, None, None]
+    w = (fz * fy * fx).reshape(m, 8)                      # index x + 2 y + 4 z
+    dw = np.empty((m, 8, 3))
+    dw[:, :, 0] = (fz * fy * dx).reshape(m, 8)
+    dw[:, :, 1] = (fz * dy * fx).reshape(m, 8)
+    dw[:, :, 2] = (dz * fy * fx).reshape(m, 8)
+    return w, dw
 
 
 def barycentric_weights(lam):
@@ -179,9 +181,25 @@ def locate(points, X, elements):
     prm = np.zeros((len(pi), 3))
     h = hexes[ei]
     if h.any():
-        u, ok = invert_trilinear(points[pi[h]], cx[ei[h]])
-        prm[h] = u
-        margin[h] = np.where(ok, np.minimum(u, 1.0 - u).min(1), -np.inf)
+        # The cell's affine approximation at its centre rules out most candidates cheaply and
+        # gives Newton's method a close start.
+        hx = np.flatnonzero(hexes)
+        w, dw = trilinear(np.full((len(hx), 3), 0.5))
+        centre = np.einsum("mk,mkc->mc", w, cx[hx])
+        J = np.einsum("mka,mkc->mca", dw, cx[hx])
+        good = np.abs(np.linalg.det(J)) > 1e-300
+        Jinv = np.zeros_like(J)
+        Jinv[good] = np.linalg.inv(J[good])
+        slot = np.full(len(hexes), -1)
+        slot[hx] = np.arange(len(hx))
+        hp = np.flatnonzero(h)
+        s = slot[ei[hp]]
+        u0 = 0.5 + np.einsum("mac,mc->ma", Jinv[s], points[pi[hp]] - centre[s])
+        near = ((u0 > -0.5) & (u0 < 1.5)).all(1) | ~good[s]
+        hp, u0 = hp[near], u0[near]
+        u, ok = invert_trilinear(points[pi[hp]], cx[ei[hp]], start=np.clip(u0, 0.0, 1.0))
+        prm[hp] = u
+        margin[hp] = np.where(ok, np.minimum(u, 1.0 - u).min(1), -np.inf)
     t = ~h
     if t.any():
         lam = barycentric(points[pi[t]], cx[ei[t], :4])
@@ -234,29 +252,68 @@ def nearest_boundary(points, X, elements):
     return cand[ei[rows]], prm[rows]
 
 
-def invert_trilinear(p, cx, steps=_NEWTON_STEPS):
+def trilinear_coefficients(cx):
+    """(m, 8, 3) coefficients of x(u, v, w) = c0 + c1 u + c2 v + c3 w + c4 u v + c5 u w + c6 v w
+    + c7 u v w for cells with corners cx (m, 8, 3) in bit order."""
+    a = cx
+    c = np.empty_like(a)
+    c[:, 0] = a[:, 0]
+    c[:, 1] = a[:, 1] - a[:, 0]
+    c[:, 2] = a[:, 2] - a[:, 0]
+    c[:, 3] = a[:, 4] - a[:, 0]
+    c[:, 4] = a[:, 3] - a[:, 1] - a[:, 2] + a[:, 0]
+    c[:, 5] = a[:, 5] - a[:, 1] - a[:, 4] + a[:, 0]
+    c[:, 6] = a[:, 6] - a[:, 2] - a[:, 4] + a[:, 0]
+    c[:, 7] = a[:, 7] - a[:, 3] - a[:, 5] - a[:, 6] + a[:, 1] + a[:, 2] + a[:, 4] - a[:, 0]
+    return c
+
+
+def invert_trilinear(p, cx, steps=_NEWTON_STEPS, start=None, chunk=262144):
     """Trilinear coordinates (m, 3) of points p (m, 3) in cells with corners cx (m, 8, 3), by
-    Newton's method from the centre, and whether it converged within `steps`."""
-    u = np.full((len(p), 3), 0.5)
-    scale = np.abs(cx - cx.mean(1, keepdims=True)).max((1, 2)) + 1e-300
+    Newton's method from `start` (m, 3) (default the centre), and whether it converged within
+    `steps`. Works on the polynomial form, in chunks, so that no (m, 8, 3) temporaries repeat."""
+    m = len(p)
+    u = np.full((m, 3), 0.5) if start is None else np.array(start, np.float64)
+    ok = np.zeros(m, bool)
+    for s0 in range(0, m, chunk):
+        sl = slice(s0, min(m, s0 + chunk))
+        c = trilinear_coefficients(cx[sl])
+        scale = np.abs(c[:, 1:4]).max((1, 2)) + 1e-300
+        u[sl], ok[sl] = _newton(p[sl], c, u[sl], scale, steps)
+    return u, ok
+
+
+def _newton(p, c, u, scale, steps):
+    """Newton iterations on the polynomial form; the working arrays shrink to the unconverged."""
     ok = np.zeros(len(p), bool)
     active = np.arange(len(p))
+    ca, pa, ua, sa = c, p, u.copy(), scale
     for _ in range(steps):
-        w, dw = trilinear(u[active])
-        x = np.einsum("mk,mkc->mc", w, cx[active])
-        J = np.einsum("mka,mkc->mca", dw, cx[active])
-        r = p[active] - x
-        done = np.abs(r).max(1) <= 1e-13 * scale[active]
+        x, y, z = ua[:, 0:1], ua[:, 1:2], ua[:, 2:3]
+        xy = x * y
+        pos = (ca[:, 0] + ca[:, 1] * x + ca[:, 2] * y + ca[:, 3] * z + ca[:, 4] * xy
+               + ca[:, 5] * (x * z) + ca[:, 6] * (y * z) + ca[:, 7] * (xy * z))
+        r = pa - pos
+        done = np.abs(r).max(1) <= 1e-13 * sa
+        u[active[done]] = ua[done]
         ok[active[done]] = True
         keep = ~done
-        active, J, r = active[keep], J[keep], r[keep]
-        if not len(active):
-            break
-        det = np.linalg.det(J)
+        if not keep.any():
+            return u, ok
+        active, ca, pa, ua, sa, r = active[keep], ca[keep], pa[keep], ua[keep], sa[keep], r[keep]
+        x, y, z = ua[:, 0:1], ua[:, 1:2], ua[:, 2:3]
+        ju = ca[:, 1] + ca[:, 4] * y + ca[:, 5] * z + ca[:, 7] * (y * z)
+        jv = ca[:, 2] + ca[:, 4] * x + ca[:, 6] * z + ca[:, 7] * (x * z)
+        jw = ca[:, 3] + ca[:, 5] * x + ca[:, 6] * y + ca[:, 7] * (x * y)
+        # Cramer's rule for J du = r, J = [ju jv jw].
+        cvw, cwu, cuv = np.cross(jv, jw), np.cross(jw, ju), np.cross(ju, jv)
+        det = np.einsum("ij,ij->i", ju, cvw)
         good = np.abs(det) > 1e-300
-        step = np.zeros_like(r)
-        step[good] = np.linalg.solve(J[good], r[good][:, :, None])[:, :, 0]
-        u[active] = np.clip(u[active] + step, -4.0, 5.0)
+        inv = np.where(good, 1.0 / np.where(good, det, 1.0), 0.0)[:, None]
+        step = np.stack([np.einsum("ij,ij->i", r, cvw), np.einsum("ij,ij->i", r, cwu),
+                         np.einsum("ij,ij->i", r, cuv)], 1) * inv
+        ua = np.clip(ua + step, -4.0, 5.0)
+    u[active] = ua
     return u, ok
 
 
@@ -288,10 +345,13 @@ def _bbox_pairs(points, lo, hi):
     pad = 1e-9 * (hi - lo).max() + 1e-300
     lo, hi = lo - pad, hi + pad
     glo, ghi = lo.min(0), hi.max(0)
-    h = max(float(np.median((hi - lo).max(1))), 1e-300)
+    # Grid cells about half a box on each axis: a point then meets few boxes besides its own.
+    h = np.maximum(0.5 * np.median(hi - lo, axis=0), 1e-300)
+    h = np.maximum(h, 1e-6 * (ghi - glo).max() + 1e-300)
     dims = np.maximum(np.ceil((ghi - glo) / h).astype(np.int64), 1)
-    while dims.prod() > 8 * len(lo) + 64:
-        h *= 1.5
+    limit = min(64 * len(lo), 4 * len(points)) + 64
+    while dims.prod() > limit:
+        h *= 1.25
         dims = np.maximum(np.ceil((ghi - glo) / h).astype(np.int64), 1)
     i0 = np.clip(np.floor((lo - glo) / h).astype(np.int64), 0, dims - 1)
     i1 = np.clip(np.floor((hi - glo) / h).astype(np.int64), 0, dims - 1)
@@ -307,9 +367,11 @@ def _bbox_pairs(points, lo, hi):
     pc = np.floor((points - glo) / h).astype(np.int64)
     inside_grid = ((pc >= 0) & (pc < dims)).all(1)
     pkey = (pc[:, 2] * dims[1] + pc[:, 1]) * dims[0] + pc[:, 0]
-    start = np.searchsorted(key, pkey)
-    stop = np.searchsorted(key, pkey, side="right")
-    n = np.where(inside_grid, stop - start, 0)
+    # Per grid cell, where its boxes start in the sorted list (a dense table: the grid is small).
+    first = np.r_[0, np.cumsum(np.bincount(key, minlength=int(dims.prod())))]
+    pkey = np.where(inside_grid, pkey, 0)
+    start = first[pkey]
+    n = np.where(inside_grid, first[pkey + 1] - start, 0)
     pi = np.repeat(np.arange(len(points)), n)
     k = np.repeat(start, n) + (np.arange(len(pi)) - np.repeat(np.cumsum(n) - n, n))
     bi = box[k]

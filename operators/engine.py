@@ -93,6 +93,12 @@ def _cage_points(cage_eval, n_points):
     """(N, 3) evaluated cage points (shape keys, hooks, armatures and modifiers applied)."""
     points = meshio.mesh_coords(cage_eval.data)
     if len(points) != n_points:
+        # In Edit Mode the evaluated mesh wraps the edit mesh and lists no vertices: convert it.
+        try:
+            points = meshio.mesh_coords(cage_eval.to_mesh())
+        finally:
+            cage_eval.to_mesh_clear()
+    if len(points) != n_points:
         raise ValueError(f"cage '{cage_eval.name}' evaluates to {len(points)} points instead of "
                          f"{n_points}: remove modifiers that add or remove its vertices")
     return points

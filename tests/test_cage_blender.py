@@ -242,3 +242,51 @@ def test_overlay_draws_the_corrected_cage_and_folds_are_counted(ext):
     cage_ob.data.vertices.foreach_set("co", co.astype(np.float32).ravel())
     bpy.context.scene.frame_set(1)
     assert eng.stats(ball)["folds"] == len(ball.data.vertices)
+
+
+def test_cage_follows_edit_mode_and_an_armature(ext):
+    import bmesh
+    eng = ext.module.operators.engine
+    v, f = core.icosphere(3, 0.5)
+    limb = _mesh_object("Limb", v * [1.0, 1.0, 1.8], f)
+    _select_only(limb)
+    assert bpy.ops.object.vpffd_cage_add_box(resolution=(1, 1, 3), margin=0.15) == {"FINISHED"}
+    cage_ob = bpy.context.view_layer.objects.active
+    rest = _volume(limb)
+    assert _bind(limb, lattice=cage_ob, axes="XYZ", cage_depth=2) == {"FINISHED"}
+    before = _evaluated(limb)[0]
+    # Edit Mode: move the top ring of the cage with bmesh, as a grab would, and update.
+    bpy.context.view_layer.objects.active = cage_ob
+    bpy.ops.object.mode_set(mode="EDIT")
+    bm = bmesh.from_edit_mesh(cage_ob.data)
+    top = max(vert.co.z for vert in bm.verts)
+    for vert in bm.verts:
+        if vert.co.z > top - 1e-6:
+            vert.co.x += 0.4
+    bmesh.update_edit_mesh(cage_ob.data)
+    bpy.context.view_layer.update()
+    edited = _evaluated(limb)[0]
+    assert eng.stats(limb).get("error") is None
+    assert np.abs(edited - before).max() > 0.1
+    assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL
+    bpy.ops.object.mode_set(mode="OBJECT")
+    # An armature bending the upper half of the cage.
+    arm = bpy.data.objects.new("Rig", bpy.data.armatures.new("Rig"))
+    bpy.context.scene.collection.objects.link(arm)
+    bpy.context.view_layer.objects.active = arm
+    bpy.ops.object.mode_set(mode="EDIT")
+    bone = arm.data.edit_bones.new("Upper")
+    bone.head, bone.tail = (0, 0, 0), (0, 0, 1)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    co = _co(cage_ob)
+    group = cage_ob.vertex_groups.new(name="Upper")
+    group.add(np.flatnonzero(co[:, 2] > 0.1).tolist(), 1.0, "REPLACE")
+    mod = cage_ob.modifiers.new("Armature", "ARMATURE")
+    mod.object = arm
+    arm.pose.bones["Upper"].rotation_mode = "XYZ"
+    arm.pose.bones["Upper"].rotation_euler = (0.6, 0, 0)
+    bpy.context.view_layer.update()
+    bent = _evaluated(limb)[0]
+    assert eng.stats(limb).get("error") is None
+    assert np.abs(bent - edited).max() > 0.1
+    assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL

@@ -238,8 +238,9 @@ def test_overlay_draws_the_corrected_cage_and_folds_are_counted(ext):
     top = co[:, 2] > co[:, 2].mean()
     co[top, 2] = co[:, 2].min() - 0.5
     ball.vpffd.axes = "NONE"
-    cage_ob.data.shape_keys.key_blocks["Basis"].data.foreach_set("co", co.astype(np.float32).ravel())
+    cage_ob.shape_key_clear()
     cage_ob.data.vertices.foreach_set("co", co.astype(np.float32).ravel())
+    cage_ob.data.update()
     bpy.context.scene.frame_set(1)
     assert eng.stats(ball)["folds"] == len(ball.data.vertices)
 

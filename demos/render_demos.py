@@ -1,6 +1,7 @@
 """Render the VP-FFD demo scenes headless and measure their volumes: `./dev demo [options]`.
 
-For each demo (the bouncing ball and the twisting cube of the Add menu) this builds the extension
+For each demo (the bouncing ball, the twisting cube and the squeezed tube of the Add menu) this
+builds the extension
 zip with Blender's own builder, installs it through Blender's own installer into a private
 BLENDER_USER_RESOURCES folder (set before bpy is imported; the real Blender configuration is never
 touched), starts from an empty scene, adds the demo with its operator
@@ -25,7 +26,7 @@ and a table on the terminal (every 5th frame, the first and last, and the frames
 Lattice modifier's volume is lowest). Exits with status 1 when a VP-FFD object's volume leaves
 its rest volume by more than 1e-5 (relative) on any frame.
 
-Options: ``--out DIR``, ``--demos ball,cube``, ``--resolution WxH`` (default 480x270),
+Options: ``--out DIR``, ``--demos ball,cube,tube``, ``--resolution WxH`` (default 480x270),
 ``--frame-step N`` (every N-th frame and the last only: a quick look), ``--update-readme`` (copies a contact sheet, a GIF and the plot of each demo to ``docs/`` and
 rewrites the README block between ``<!-- demos:start -->`` and ``<!-- demos:end -->``).
 """
@@ -82,6 +83,11 @@ DEMOS = {
                  "4x4x8 lattice (a Simple Deform modifier on the lattice). Left: Blender's Lattice "
                  "modifier; middle: VP-FFD correcting along X and Y (top and bottom stay flat); "
                  "right: VP-FFD correcting along Z (the paper's Figure 6)."),
+    "tube": Demo("tube", "Squeezed tube (cage)", "vpffd_demo_squeezed_tube",
+                 "A capsule ({n_verts:,} vertices) in a cylindrical VP-FFD cage (an octagon with a ring "
+                 "of quads, extruded into 6 layers; depth 3) whose middle a shape key squeezes. Left: the "
+                 "cage's plain deformation (Correction None); middle: VP-FFD correcting along X, Y and Z; "
+                 "right: VP-FFD correcting along Z only, so the squeezed volume goes into the length."),
 }
 
 
@@ -168,7 +174,9 @@ def find_variants(scene):
     out = []
     meshes = [ob for ob in scene.objects if ob.type == "MESH"]
     for ob in sorted(meshes, key=lambda o: o.matrix_world.translation.x):
-        if ob.vpffd.is_bound:
+        if ob.vpffd.is_bound and ob.vpffd.axes == "NONE":   # a cage without correction
+            key, label, preserved = "plain", "Cage, no correction", False
+        elif ob.vpffd.is_bound:
             axes = ob.vpffd.axes
             key, label, preserved = f"vpffd_{axes.lower()}", f"VP-FFD {axes}", True
         elif any(m.type == "LATTICE" for m in ob.modifiers):
@@ -182,7 +190,7 @@ def find_variants(scene):
 
 
 def build(demo):
-    """Add `demo` ("ball" or "cube") to the current scene with its operator; returns its variants."""
+    """Add `demo` ("ball", "cube" or "tube") to the current scene with its operator; returns its variants."""
     import bpy
     operator = getattr(bpy.ops.object, DEMOS[demo].operator)
     result = operator(new_scene=False)
@@ -542,9 +550,10 @@ def readme_block(results, env):
                    f"module, headless), Workbench engine, {env['resolution']}, {env['frames']}; the run "
                    f"took {env['seconds']:.0f} s on {env['cpus']} CPU cores. Volumes are measured from the "
                    "meshes Blender evaluates (float32 coordinates, world space), independently of the "
-                   "solver. Red: Blender's Lattice modifier (plain FFD); blue: VP-FFD correcting along the "
-                   "lattice's X and Y; green: VP-FFD correcting along Z."), ""]
-    for key in ("ball", "cube"):
+                   "solver. Red: plain FFD (Blender's Lattice modifier, or the cage without correction); "
+                   "blue: VP-FFD correcting along the lattice's X and Y (X, Y and Z for the tube); "
+                   "green: VP-FFD correcting along Z."), ""]
+    for key in ("ball", "cube", "tube"):
         r = by[key]
         lines += [f"### {r.demo.title}", "", _wrap(r.demo.description.format(n_verts=r.n_verts)), "",
                   f"![{r.demo.title}: contact sheet](docs/{key}_contact_sheet.jpg)", "",
@@ -615,7 +624,8 @@ def update_readme(results, env, out_dirs, readme=README, docs=DOCS):
 def parse_args(argv):
     p = argparse.ArgumentParser(prog="./dev demo", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default=os.path.join(ROOT, "out"), help="output folder (default out/)")
-    p.add_argument("--demos", default="ball,cube", help="comma-separated: ball, cube (default both)")
+    p.add_argument("--demos", default="ball,cube,tube",
+                   help="comma-separated: ball, cube, tube (default all)")
     p.add_argument("--resolution", default="%dx%d" % DEFAULT_RESOLUTION,
                    help="render size WxH (default %(default)s)")
     p.add_argument("--frame-step", type=int, default=1, metavar="N",

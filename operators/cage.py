@@ -66,7 +66,19 @@ def cage_edges(cells):
 
 
 def new_cage_object(context, name, points, cells, matrix_world=None):
-    """A wire-drawn mesh object holding a cage; validated first (a bad cage raises ValueError)."""
+    """A wire-drawn mesh object holding a cage, linked to the active collection, selected and
+    active; validated first (a bad cage raises ValueError)."""
+    ob = cage_object(name, points, cells, matrix_world)
+    (context.collection or context.scene.collection).objects.link(ob)
+    for other in context.selected_objects:
+        other.select_set(False)
+    ob.select_set(True)
+    context.view_layer.objects.active = ob
+    return ob
+
+
+def cage_object(name, points, cells, matrix_world=None):
+    """A wire-drawn mesh object holding a cage, not linked to any scene yet."""
     vp.Cage(points, cells)
     edges = cage_edges(cells)
     me = bpy.data.meshes.new(name)
@@ -82,11 +94,6 @@ def new_cage_object(context, name, points, cells, matrix_world=None):
     ob.hide_render = True
     if matrix_world is not None:
         ob.matrix_world = matrix_world
-    context.collection.objects.link(ob)
-    for other in context.selected_objects:
-        other.select_set(False)
-    ob.select_set(True)
-    context.view_layer.objects.active = ob
     return ob
 
 

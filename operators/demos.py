@@ -1,15 +1,17 @@
-"""Demo scenes of the paper (seeds/003, Figures 1 and 6), in the Add menu: a bouncing ball and a
-twisting cube, each next to a plain Lattice modifier copy so the difference shows in one frame."""
+"""Demo scenes in the Add menu: the paper's bouncing ball and twisting cube (seeds/003, Figures 1
+and 6), each next to a plain Lattice modifier copy so the difference shows in one frame, and a tube
+in a cylindrical cage (MacCracken & Joy), next to the same cage without correction."""
 import math
 
 import bpy
 import numpy as np
 
 from .. import vpffd_addon as vp
-from . import engine
+from . import cage, engine
 
 BALL_FRAMES = (1, 60)
 CUBE_FRAMES = (1, 60)
+TUBE_FRAMES = (1, 60)
 
 PLAIN_COLOUR = (0.85, 0.30, 0.25, 1.0)
 VPFFD_COLOUR = (0.20, 0.55, 0.90, 1.0)
@@ -242,6 +244,74 @@ def build_twisting_cube(scene, depsgraph=None):
     return {"plain": plain, "vpffd_xy": xy, "vpffd_z": z, "lattices": [plain_lat, xy_lat, z_lat]}
 
 
+# ------------------------------------------------------------------------------- squeezed tube
+
+def _capsule(radius, length, rings=48, segments=32, cap_rings=8):
+    """A closed capsule along Z (a cylinder of `length` with hemispherical caps): (verts, tris)."""
+    zs = [(-length / 2 - radius * math.cos(a), radius * math.sin(a))
+          for a in np.linspace(0, math.pi / 2, cap_rings + 1)[1:]]
+    zs += [(z, radius) for z in np.linspace(-length / 2, length / 2, rings + 1)[1:-1]]
+    zs += [(-z, r) for z, r in reversed(zs[:cap_rings])]
+    ang = np.arange(segments) * 2 * math.pi / segments
+    ring_verts = [np.stack([r * np.cos(ang), r * np.sin(ang), np.full(segments, z)], 1) for z, r in zs]
+    verts = np.concatenate([[[0, 0, -length / 2 - radius]], *ring_verts, [[0, 0, length / 2 + radius]]])
+    n, top = len(zs), len(verts) - 1
+    tris = []
+    for j in range(segments):
+        k = (j + 1) % segments
+        tris.append((0, 1 + k, 1 + j))
+        tris.append((top, 1 + (n - 1) * segments + j, 1 + (n - 1) * segments + k))
+        for i in range(n - 1):
+            a, b = 1 + i * segments, 1 + (i + 1) * segments
+            tris += [(a + j, a + k, b + k), (a + j, b + k, b + j)]
+    return verts, np.array(tris, np.int64)
+
+
+def _tube_rig(scene, name, x, colour):
+    """A capsule in a cylindrical cage: an octagon with a ring of quads, extruded into 6 layers.
+    A shape key squeezes the cage's middle rings."""
+    k, height = 8, 2.0
+    ang = np.arange(k) * 2 * np.pi / k + np.pi / k
+    disc = np.concatenate([np.stack([r * np.cos(ang), r * np.sin(ang), 0 * ang], 1) for r in (0.27, 0.54)])
+    polys = [list(range(k))] + [[i, (i + 1) % k, k + (i + 1) % k, k + i] for i in range(k)]
+    points, cells = vp.extrude(disc - [0, 0, height / 2], polys, (0, 0, height), 6)
+    cage_ob = cage.cage_object(f"{name} Cage", points, cells)
+    cage_ob.location = (x, 0.0, 1.25)
+    scene.collection.objects.link(cage_ob)
+    verts, tris = _capsule(0.36, 1.15)
+    tube = _mesh_object(scene, name, verts, tris, _material(f"VP-FFD Demo {name}", colour), smooth=True)
+    tube.location = cage_ob.location
+    cage_ob.shape_key_add(name="Basis")
+    squeeze = points.copy()
+    z = np.abs(points[:, 2])
+    squeeze[:, :2] *= np.where(z < 0.1, 0.4, np.where(z < 0.5, 0.75, 1.0))[:, None]
+    key = cage_ob.shape_key_add(name="Squeeze")
+    key.data.foreach_set("co", squeeze.astype(np.float32).ravel())
+    for f, v in ((1, 0.0), (25, 1.0), (40, 1.0), (60, 0.0)):
+        _key(key, "value", f, v)
+    return tube, cage_ob
+
+
+def build_squeezed_tube(scene, depsgraph=None):
+    """Three capsules squeezed in the middle by cylindrical cages: the cage's plain deformation
+    (Correction None), VP-FFD along X, Y and Z, and VP-FFD along Z only (the squeezed volume goes
+    into the capsule's length). Returns {'plain': tube, 'vpffd_xyz': tube, 'vpffd_z': tube,
+    'cages': [...]}."""
+    plain, plain_cage = _tube_rig(scene, "Tube Cage Plain", -1.6, PLAIN_COLOUR)
+    xyz, xyz_cage = _tube_rig(scene, "Tube VP-FFD XYZ", 0.0, VPFFD_COLOUR)
+    z, z_cage = _tube_rig(scene, "Tube VP-FFD Z", 1.6, VPFFD_COLOUR_2)
+    for text, x in (("Cage, no correction", -1.6), ("VP-FFD cage (XYZ)", 0.0), ("VP-FFD cage (Z)", 1.6)):
+        _label(scene, text, (x, 0.0, 3.35), size=0.25)
+    _stage(scene, camera_location=(0.0, -8.0, 1.9), camera_target=(0.0, 0.0, 1.6), frames=TUBE_FRAMES,
+           ground_size=6.0)
+    scene.frame_set(scene.frame_start)
+    dg = depsgraph or scene.view_layers[0].depsgraph
+    _bind(plain, dg, lattice=plain_cage, axes="NONE", cage_depth=3)
+    _bind(xyz, dg, lattice=xyz_cage, axes="XYZ", space="LATTICE", cage_depth=3)
+    _bind(z, dg, lattice=z_cage, axes="Z", space="LATTICE", cage_depth=3)
+    return {"plain": plain, "vpffd_xyz": xyz, "vpffd_z": z, "cages": [plain_cage, xyz_cage, z_cage]}
+
+
 # ----------------------------------------------------------------------------------- operators
 
 class _DemoOperator:
@@ -280,6 +350,14 @@ class OBJECT_OT_vpffd_demo_twisting_cube(_DemoOperator, bpy.types.Operator):
     build = staticmethod(build_twisting_cube)
 
 
+class OBJECT_OT_vpffd_demo_squeezed_tube(_DemoOperator, bpy.types.Operator):
+    """Add the squeezed-tube demo: a tube in a cylindrical VP-FFD cage, without and with correction"""
+    bl_idname = "object.vpffd_demo_squeezed_tube"
+    bl_label = "Squeezed Tube (VP-FFD Cage Demo)"
+    scene_name = "VP-FFD Squeezed Tube"
+    build = staticmethod(build_squeezed_tube)
+
+
 class VIEW3D_MT_vpffd_demos(bpy.types.Menu):
     bl_label = "VP-FFD Demos"
     bl_idname = "VIEW3D_MT_vpffd_demos"
@@ -287,13 +365,15 @@ class VIEW3D_MT_vpffd_demos(bpy.types.Menu):
     def draw(self, context):
         self.layout.operator(OBJECT_OT_vpffd_demo_bouncing_ball.bl_idname, icon="MESH_UVSPHERE")
         self.layout.operator(OBJECT_OT_vpffd_demo_twisting_cube.bl_idname, icon="MESH_CUBE")
+        self.layout.operator(OBJECT_OT_vpffd_demo_squeezed_tube.bl_idname, icon="MESH_CYLINDER")
 
 
 def _add_menu(self, context):
     self.layout.menu(VIEW3D_MT_vpffd_demos.bl_idname, icon="MOD_LATTICE")
 
 
-classes = (OBJECT_OT_vpffd_demo_bouncing_ball, OBJECT_OT_vpffd_demo_twisting_cube, VIEW3D_MT_vpffd_demos)
+classes = (OBJECT_OT_vpffd_demo_bouncing_ball, OBJECT_OT_vpffd_demo_twisting_cube,
+           OBJECT_OT_vpffd_demo_squeezed_tube, VIEW3D_MT_vpffd_demos)
 
 
 def register():

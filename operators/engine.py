@@ -463,6 +463,7 @@ def bind(obj, depsgraph):
     s.bound_topology = meshio.topology_signature(mesh)
     s.is_bound = True
     modifier.ensure(obj)
+    modifier.set_lattice(obj, s.lattice)
     forget(obj)
     state = _cache[obj.session_uid] = _Bound(obj)
     depsgraph.update()

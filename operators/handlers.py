@@ -3,7 +3,7 @@ none lets an exception reach Blender: `engine.update` records problems for the p
 import bpy
 from bpy.app.handlers import persistent
 
-from . import engine
+from . import engine, modifier
 
 _updating = False  # our own writes trigger depsgraph updates: do not recurse into them
 
@@ -41,6 +41,9 @@ def on_load(*_args):
     engine.forget()
     try:
         for scene in bpy.data.scenes:
+            for ob in engine.bound_objects(scene):
+                # Files bound by older versions lack the modifier's lattice dependency.
+                modifier.set_lattice(ob, ob.vpffd.lattice)
             if engine.bound_objects(scene):
                 scene.render.use_lock_interface = True
         context = bpy.context

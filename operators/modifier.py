@@ -8,6 +8,7 @@ from .meshio import OFFSET_ATTRIBUTE
 MODIFIER_NAME = "VP-FFD"
 NODE_GROUP_NAME = "VP-FFD Offset"
 _TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
+LATTICE_INPUT = "Lattice"   # object input: makes the lattice or cage a dependency of the mesh
 
 
 def offset_node_group():
@@ -28,7 +29,31 @@ def offset_node_group():
     ng.links.new(offset.outputs["Attribute"], move.inputs["Offset"])
     ng.links.new(move.outputs["Geometry"], gout.inputs[0])
     gin.location, offset.location, move.location, gout.location = (-400, 0), (-400, -150), (-150, 0), (100, 0)
+    _ensure_lattice_input(ng)
     return ng
+
+
+def _ensure_lattice_input(ng):
+    """The group's object input for the lattice or cage (added to groups made by older versions).
+    The modifier's object inputs are dependencies of the mesh, so every evaluation, a render's
+    included, evaluates the lattice or cage before the mesh, even when it is hidden from renders
+    (the solver reads it from the render's own depsgraph)."""
+    for item in ng.interface.items_tree:
+        if getattr(item, "in_out", None) == "INPUT" and item.name == LATTICE_INPUT:
+            return item.identifier
+    item = ng.interface.new_socket(LATTICE_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
+    item.description = "The Lattice or VP-FFD cage the solver reads (set by Bind)"
+    return item.identifier
+
+
+def set_lattice(obj, lattice):
+    """Point the VP-FFD modifier's lattice input at `lattice` (an Object or None), when it differs."""
+    mod = find(obj)
+    if mod is None:
+        return
+    key = _ensure_lattice_input(mod.node_group)
+    if mod.get(key) is not lattice:
+        mod[key] = lattice
 
 
 def find(obj):

@@ -50,9 +50,14 @@ def _settings_changed(self, context):
     engine.request_update(self.id_data)
 
 
+def _lattice_changed(self, context):
+    modifier.set_lattice(self.id_data, self.lattice)
+    _settings_changed(self, context)
+
+
 class VPFFD_Settings(bpy.types.PropertyGroup):
     lattice: PointerProperty(
-        name="Lattice", type=bpy.types.Object, poll=_poll_lattice, update=_settings_changed,
+        name="Lattice", type=bpy.types.Object, poll=_poll_lattice, update=_lattice_changed,
         description="Lattice object that deforms this mesh (as with a Lattice modifier), or a VP-FFD "
                     "cage of any shape (Add > VP-FFD Cage)")
     cage_depth: IntProperty(

@@ -291,3 +291,46 @@ def test_cage_follows_edit_mode_and_an_armature(ext):
     assert eng.stats(limb).get("error") is None
     assert np.abs(bent - edited).max() > 0.1
     assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL
+
+
+@pytest.mark.parametrize("kind", ["cage", "lattice"])
+def test_renders_deform_with_the_cage_or_lattice_hidden_from_render(ext, kind, tmp_path):
+    """F12 evaluates a render depsgraph of its own: a cage or lattice hidden from renders must still
+    be evaluated there (the VP-FFD modifier names it as a dependency), or the render shows the mesh
+    undeformed while the viewport shows it deformed."""
+    ball = _sphere(radius=0.6)
+    if kind == "cage":
+        control = _box_cage_around(ball, resolution=(2, 2, 2))
+        _squash_key(control, amount=0.6)
+        settings = dict(lattice=control, axes="NONE", cage_depth=1)
+    else:
+        try:
+            from .test_extension_blender import _animate_squash, _lattice
+        except ImportError:
+            from test_extension_blender import _animate_squash, _lattice
+        control = _lattice()
+        _animate_squash(control, 0.6)
+        settings = dict(lattice=control, axes="NONE")
+    assert _bind(ball, **settings) == {"FINISHED"}
+    control.hide_render = True
+    scene = bpy.context.scene
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    scene.collection.objects.link(cam)
+    cam.location = (0, -6, 0)
+    cam.rotation_euler = (1.5708, 0, 0)
+    scene.camera = cam
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x = scene.render.resolution_y = 64
+    scene.render.film_transparent = True
+    areas = {}
+    for frame in (1, 15):
+        scene.frame_set(frame)
+        path = str(tmp_path / f"{kind}_{frame}.png")
+        scene.render.filepath = path
+        bpy.ops.render.render(write_still=True)
+        img = bpy.data.images.load(path)
+        px = np.empty(img.size[0] * img.size[1] * 4, np.float32)
+        img.pixels.foreach_get(px)
+        areas[frame] = int((px.reshape(-1, 4)[:, 3] > 0.5).sum())
+    # The squash flattens the ball to 40% of its height: its silhouette shrinks a lot.
+    assert areas[15] < 0.8 * areas[1], areas

@@ -23,7 +23,8 @@ except ImportError:
 from demos import render_demos as rd  # noqa: E402  (repository root is on sys.path: conftest)
 
 VOLUME_TOL = 1e-5
-DEMO_KEYS = {"ball": {"plain", "vpffd_xy"}, "cube": {"plain", "vpffd_xy", "vpffd_z"}}
+DEMO_KEYS = {"ball": {"plain", "vpffd_xy"}, "cube": {"plain", "vpffd_xy", "vpffd_z"},
+             "tube": {"plain", "vpffd_xyz", "vpffd_z"}}
 
 
 @pytest.fixture
@@ -69,7 +70,8 @@ def _rest_volume(ob):
 
 def _build(demo):
     op = {"ball": bpy.ops.object.vpffd_demo_bouncing_ball,
-          "cube": bpy.ops.object.vpffd_demo_twisting_cube}[demo]
+          "cube": bpy.ops.object.vpffd_demo_twisting_cube,
+          "tube": bpy.ops.object.vpffd_demo_squeezed_tube}[demo]
     assert op(new_scene=False) == {"FINISHED"}
     scene = bpy.context.scene
     variants = rd.find_variants(scene)
@@ -119,7 +121,21 @@ def test_twisting_cube_keeps_its_volume_on_every_frame(ext):
             assert (np.diff(r) <= 1e-6).all(), "the plain twist should lose volume monotonically"
 
 
-@pytest.mark.parametrize("demo", ["ball", "cube"])
+def test_squeezed_tube_keeps_its_volume_on_every_frame(ext):
+    scene, variants = _build("tube")
+    assert (scene.frame_start, scene.frame_end) == (1, 60)
+    frames, ratios = _step_all(scene, variants)
+    for j, v in enumerate(variants):
+        r = ratios[:, j]
+        if v.preserved:
+            worst = int(np.argmax(np.abs(r - 1)))
+            assert abs(r[worst] - 1) <= VOLUME_TOL, f"{v.label}: {r[worst]:.8f} of rest at frame {frames[worst]}"
+        else:
+            assert abs(r[0] - 1) <= VOLUME_TOL
+            assert r.min() <= 0.85, f"the plain tube keeps {r.min():.1%} at its deepest pinch"
+
+
+@pytest.mark.parametrize("demo", ["ball", "cube", "tube"])
 def test_demo_objects_stay_in_the_camera_view(ext, demo):
     scene, variants = _build(demo)
     for f in range(scene.frame_start, scene.frame_end + 1, 3):
@@ -173,14 +189,14 @@ def _prepare_render(scene):
     scene.render.resolution_percentage = 100
 
 
-@pytest.mark.parametrize("demo", ["ball", "cube"])
+@pytest.mark.parametrize("demo", ["ball", "cube", "tube"])
 def test_renders_show_the_plain_object_losing_what_vpffd_keeps(ext, demo, tmp_path):
     """At the ball's deepest squash and the cube's last frame: the whole scene renders to a PNG,
     and each object rendered alone covers a clearly larger area with VP-FFD than without."""
     scene, variants = _build(demo)
     _prepare_render(scene)
     plain = next(v for v in variants if not v.preserved)
-    if demo == "ball":   # the frame where the plain ball is flattest
+    if demo in ("ball", "tube"):   # the frame where the plain object has lost most
         frames = range(scene.frame_start, scene.frame_end + 1)
         volumes = []
         for f in frames:

@@ -300,8 +300,8 @@ def build_squeezed_tube(scene, depsgraph=None):
     plain, plain_cage = _tube_rig(scene, "Tube Cage Plain", -1.6, PLAIN_COLOUR)
     xyz, xyz_cage = _tube_rig(scene, "Tube VP-FFD XYZ", 0.0, VPFFD_COLOUR)
     z, z_cage = _tube_rig(scene, "Tube VP-FFD Z", 1.6, VPFFD_COLOUR_2)
-    for text, x in (("Cage, no correction", -1.6), ("VP-FFD cage (XYZ)", 0.0), ("VP-FFD cage (Z)", 1.6)):
-        _label(scene, text, (x, 0.0, 3.35), size=0.25)
+    for text, x in (("No correction", -1.6), ("VP-FFD (XYZ)", 0.0), ("VP-FFD (Z)", 1.6)):
+        _label(scene, text, (x, 0.0, 3.05), size=0.24)
     _stage(scene, camera_location=(0.0, -8.0, 1.9), camera_target=(0.0, 0.0, 1.6), frames=TUBE_FRAMES,
            ground_size=6.0)
     scene.frame_set(scene.frame_start)

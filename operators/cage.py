@@ -102,6 +102,13 @@ def _selected_meshes(context, exclude=None):
             and not is_cage(ob)]
 
 
+def _padded_bounds(objects, depsgraph, margin, to_local=None):
+    """`_world_bounds` grown by `margin` times the largest extent on every side."""
+    lo, hi = _world_bounds(objects, depsgraph, to_local)
+    pad = margin * max(float((hi - lo).max()), 1e-6)
+    return lo - pad, hi + pad
+
+
 def _world_bounds(objects, depsgraph, to_local=None):
     """(lo, hi) of the objects' evaluated vertices, in world space or through `to_local` (4, 4)."""
     pts = []
@@ -136,9 +143,7 @@ class OBJECT_OT_vpffd_cage_add_box(bpy.types.Operator):
         try:
             targets = _selected_meshes(context)
             if targets:
-                lo, hi = _world_bounds(targets, context.evaluated_depsgraph_get())
-                pad = self.margin * max(float((hi - lo).max()), 1e-6)
-                lo, hi = lo - pad, hi + pad
+                lo, hi = _padded_bounds(targets, context.evaluated_depsgraph_get(), self.margin)
                 hi = np.maximum(hi, lo + 1e-6)
             else:
                 c = np.array(context.scene.cursor.location)
@@ -248,9 +253,7 @@ class OBJECT_OT_vpffd_cage_fit(bpy.types.Operator):
             self.report({"ERROR"}, "select the meshes to enclose, then the cage last (active)")
             return {"CANCELLED"}
         to_local = np.linalg.inv(matrix(cage_ob.matrix_world))
-        lo, hi = _world_bounds(targets, context.evaluated_depsgraph_get(), to_local)
-        pad = self.margin * max(float((hi - lo).max()), 1e-6)
-        lo, hi = lo - pad, hi + pad
+        lo, hi = _padded_bounds(targets, context.evaluated_depsgraph_get(), self.margin, to_local)
         me = cage_ob.data
         P = mesh_coords(me)
         plo, phi = P.min(0), P.max(0)

@@ -7,6 +7,7 @@ boundary control (`subdivision.py`); a mesh is embedded in the refined cells (`c
 """
 import numpy as np
 
+from .lattice import Bounded
 from .mesh import check_verts
 
 #: Faces of the cells that may be given by their corners alone, keyed by the number of corners.
@@ -149,7 +150,7 @@ def tet_volumes(tets):
     return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
 
 
-class Cage:
+class Cage(Bounded):
     """A control cage of any topology: points (N, 3) and closed polyhedral cells.
 
     cells: a sequence of cells; each either its corners (4 tetrahedron, 5 pyramid, 6 prism,
@@ -208,22 +209,13 @@ class Cage:
 
     @property
     def lo(self):
+        """(3,) low corner of the points' bounding box."""
         return self._points.min(0)
 
     @property
     def hi(self):
+        """(3,) high corner of the points' bounding box."""
         return self._points.max(0)
-
-    @property
-    def centre(self):
-        """(3,) centre of the points' bounding box; volumes of open meshes are measured about it."""
-        return 0.5 * (self.lo + self.hi)
-
-    @property
-    def size(self):
-        """Largest extent of the points' bounding box: the length scale."""
-        extent = float((self.hi - self.lo).max())
-        return extent if extent > 0 else 1.0
 
     def region(self, depth=3):
         """The cage refined `depth` times (`subdivision.Refinement`): its points approach the

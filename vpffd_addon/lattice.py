@@ -4,7 +4,22 @@ import numpy as np
 from .bases import INTERPOLATIONS, tap_count
 
 
-class Lattice:
+class Bounded:
+    """`centre` and `size` of anything with `lo` and `hi` (3,) bounds: a lattice or a cage."""
+
+    @property
+    def centre(self):
+        """(3,) centre of the bounds; volumes of open meshes are measured about it."""
+        return 0.5 * (self.lo + self.hi)
+
+    @property
+    def size(self):
+        """Largest extent of the bounds (1.0 when there is no extent): the length scale."""
+        extent = float((self.hi - self.lo).max())
+        return extent if extent > 0 else 1.0
+
+
+class Lattice(Bounded):
     """A regular control grid in its own (lattice) space, as Blender's Lattice data.
 
     shape: (nu, nv, nw) points per axis, each >= 1.
@@ -49,17 +64,6 @@ class Lattice:
     def n_points(self):
         """Number of control points N = nu * nv * nw."""
         return self.shape[0] * self.shape[1] * self.shape[2]
-
-    @property
-    def centre(self):
-        """(3,) centre of the bounds; volumes of open meshes are measured about it."""
-        return 0.5 * (self.lo + self.hi)
-
-    @property
-    def size(self):
-        """Largest extent of the bounds (1.0 for a lattice with no extent): the length scale."""
-        extent = float((self.hi - self.lo).max())
-        return extent if extent > 0 else 1.0
 
     @property
     def taps(self):

@@ -89,6 +89,14 @@ def _is_control(ob):
     return ob is not None and (ob.type == "LATTICE" or cage.is_cage(ob))
 
 
+def _missing_control(ob):
+    """What is wrong with `ob` as the lattice setting (it is not `_is_control`), in words."""
+    if ob is not None and ob.type == "MESH":
+        return (f"mesh '{ob.name}' is not a VP-FFD cage (it has no cells): make one with "
+                "Add > VP-FFD Cage, or pick a Lattice object")
+    return "the lattice is missing: pick a Lattice object or a VP-FFD cage, or Unbind"
+
+
 def _cage_points(cage_eval, n_points):
     """(N, 3) evaluated cage points (shape keys, hooks, armatures and modifiers applied)."""
     points = meshio.mesh_coords(cage_eval.data)
@@ -246,7 +254,7 @@ def _update(obj, depsgraph, force):
         lat_ob = s.lattice
         if not _is_control(lat_ob):
             _zero_offsets(obj)
-            _set_stats(obj, error="the lattice is missing: pick a Lattice object or a VP-FFD cage, or Unbind")
+            _set_stats(obj, error=_missing_control(lat_ob))
             return False
 
         lat_eval = lat_ob.evaluated_get(depsgraph)
@@ -413,7 +421,8 @@ def check_bindable(obj):
         raise BindError("leave Edit Mode before binding")
     s = obj.vpffd
     if not _is_control(s.lattice):
-        raise BindError("pick a Lattice object or a VP-FFD cage first")
+        raise BindError("pick a Lattice object or a VP-FFD cage first" if s.lattice is None
+                        else _missing_control(s.lattice))
     if obj.data.users > 1:
         raise BindError(f"mesh '{obj.data.name}' is shared by {obj.data.users} objects (linked "
                         "duplicates); make it single user (Object > Relations > Make Single User)")

@@ -185,7 +185,7 @@ def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
     # A mesh that is not a cage.
     plain = _mesh_object("NotACage", *core.icosphere(1, 2.0))
     ball.vpffd.lattice = plain
-    with pytest.raises(RuntimeError, match="Lattice object or a VP-FFD cage"):
+    with pytest.raises(RuntimeError, match="'NotACage' is not a VP-FFD cage .it has no cells."):
         _bind(ball)
     # A cage whose stored cells are inside out.
     cage_ob = _box_cage_around(ball)
@@ -334,3 +334,25 @@ def test_renders_deform_with_the_cage_or_lattice_hidden_from_render(ext, kind, t
         areas[frame] = int((px.reshape(-1, 4)[:, 3] > 0.5).sum())
     # The squash flattens the ball to 40% of its height: its silhouette shrinks a lot.
     assert areas[15] < 0.8 * areas[1], areas
+
+
+def test_mobility_group_of_the_cage_keeps_unassigned_points_still(ext):
+    eng = ext.module.operators.engine
+    ball = _sphere()
+    cage_ob = _box_cage_around(ball, resolution=(2, 2, 2))
+    _squash_key(cage_ob, amount=0.5)
+    co = _co(cage_ob)
+    free = np.flatnonzero(co[:, 0] > co[:, 0].mean() - 1e-6)           # the +X half may move
+    cage_ob.vertex_groups.new(name="Free").add(free.tolist(), 1.0, "REPLACE")
+    rest = _volume(ball)
+    assert _bind(ball, lattice=cage_ob, axes="XYZ", cage_depth=2, mobility_group="Free",
+                 show_overlay=True) == {"FINISHED"}
+    bpy.context.scene.frame_set(15)
+    assert eng.stats(ball).get("error") is None
+    assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
+    points, _, _ = eng.overlay_geometry(ball)
+    M = np.array(cage_ob.matrix_world)
+    user = _co(cage_ob, evaluated=True) @ M[:3, :3].T + M[:3, 3]
+    moved = np.abs(points - user).max(1)
+    fixed = np.setdiff1d(np.arange(len(co)), free)
+    assert moved[fixed].max() <= 1e-9 and moved[free].max() > 1e-3

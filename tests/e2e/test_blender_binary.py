@@ -10,10 +10,12 @@ from the render pipeline's depsgraph (kept from frame_change_post, which is the 
 gets it) and writes its float32 vertex coordinates, triangles and volume. The host recomputes the
 volumes with numpy from those coordinates, checks them, and checks the images.
 
-The deformer is a parameter: "lattice" (Blender's Lattice modifier) runs by default; "vpffd"
-builds the extension from this working tree, installs it in the chroot's Blender and binds with
+The deformer is a parameter: "lattice" (Blender's Lattice modifier); "vpffd" builds the extension
+from this working tree, installs it in the chroot's Blender and binds with
 `sphere.vpffd.lattice = lattice; bpy.ops.object.vpffd_bind()`, then expects the volume to stay
-the rest volume. Choose with VPFFD_E2E_DEFORMERS=lattice,vpffd (or change DEFORMERS below).
+the rest volume; "cage" does the same with a VP-FFD cage made by `vpffd_cage_add_box` (hidden
+from renders) and squashed by the same shape key. All three run by default; choose with
+VPFFD_E2E_DEFORMERS=lattice,vpffd,cage (or change DEFORMERS below).
 VPFFD_E2E_KEEP=1 keeps the work folder (<chroot>/tmp/vpffd-e2e-*) for inspection.
 
 Skipped only when not root or when debootstrap cannot be installed; anything else failing
@@ -31,7 +33,7 @@ try:
 except ImportError:  # imported without its package
     import blender_chroot as bc
 
-DEFORMERS = os.environ.get("VPFFD_E2E_DEFORMERS", "lattice,vpffd").split(",")
+DEFORMERS = os.environ.get("VPFFD_E2E_DEFORMERS", "lattice,vpffd,cage").split(",")
 FRAMES = (1, 2, 3)
 SQUASH = (1.3, 1.3, 0.5)        # lattice shape-key scale at full value (frame 3)
 KEY_VALUE = {1: 0.0, 2: 0.5, 3: 1.0}   # two auto-clamped keys: exactly 0.5 half-way
@@ -89,6 +91,31 @@ key.keyframe_insert("value", frame=3)
 if deformer == "lattice":
     mod = sphere.modifiers.new("Lattice", "LATTICE")
     mod.object = lattice
+elif deformer == "cage":
+    # A VP-FFD cage (a mesh object, hidden from renders as the extension makes it) around the
+    # sphere, squashed by the same shape key, with the sphere bound to it.
+    for ob in scene.objects:
+        ob.select_set(ob is sphere)
+    bpy.context.view_layer.objects.active = sphere
+    with bpy.context.temp_override(active_object=sphere, object=sphere, selected_objects=[sphere]):
+        res = bpy.ops.object.vpffd_cage_add_box(resolution=(2, 2, 2), margin=0.1)
+    assert res == {"FINISHED"}, res
+    cage = bpy.context.view_layer.objects.active
+    assert cage is not sphere and cage.hide_render
+    cage.shape_key_add(name="Basis", from_mix=False)
+    ckey = cage.shape_key_add(name="Squash", from_mix=False)
+    for p in ckey.data:
+        p.co = (p.co[0] * SQUASH[0], p.co[1] * SQUASH[1], p.co[2] * SQUASH[2])
+    ckey.value = 0.0
+    ckey.keyframe_insert("value", frame=1)
+    ckey.value = 1.0
+    ckey.keyframe_insert("value", frame=3)
+    sphere.vpffd.lattice = cage
+    sphere.vpffd.cage_depth = 2
+    with bpy.context.temp_override(object=sphere, active_object=sphere, selected_objects=[sphere]):
+        res = bpy.ops.object.vpffd_bind()
+    assert res == {"FINISHED"}, res
+    print("VPFFD_E2E_BOUND")
 elif deformer == "vpffd":
     # The extension (installed by the test into this run's user resources) replaces the Lattice
     # modifier: pick the lattice in the object's VP-FFD settings, then bind.
@@ -234,7 +261,7 @@ def test_blender_binary_renders_deformed_animation(deformer, workdir, tmp_path):
     (scripts / "record.py").write_text(textwrap.dedent(RECORD))
     measure = os.path.join(workdir, "measure")
 
-    if deformer == "vpffd":
+    if deformer in ("vpffd", "cage"):
         zip_path = bc.build_extension(bc.REPO_ROOT, workdir)
         bc.install_extension(zip_path, workdir)
 

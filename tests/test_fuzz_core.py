@@ -112,7 +112,7 @@ def _count(test, outcome, message=None):
 # that hits them again fails the run. "float64-range" stays counted, not failing: its overflow
 # cases are fixed (regression tests), but underflow-sized meshes (~0 or 1e-100 across) can still
 # report a volume off by ~1e-22 from the one measured.
-FIXED_BUGS = {"flat-lattice-blowup", "float32-range", "solve-hangs"}
+FIXED_BUGS = {"flat-lattice-blowup", "float32-range", "solve-hangs", "float32-plain-volume-nan"}
 
 
 def _known(bug, detail):
@@ -883,12 +883,10 @@ def test_known_bug_open_mesh_float32_cancellation(size):
     assert abs(measured / b.rest_volume - 1) <= 1e-4 or sol.warnings, measured / b.rest_volume
 
 
-@pytest.mark.xfail(strict=True, reason="known bug float32-plain-volume-nan (see KNOWN_BUGS)")
-def test_known_bug_float32_plain_volume_nan():
+def test_fixed_bug_float32_plain_volume_nan():
     """The fuzzer's case: a flat closed tetrahedron at 1e15 in a 1x1x2 LINEAR lattice, float32,
-    both control points flung ~2e19, corrected along Z then Y: Solution(volume=0.0,
-    plain_volume=nan). Expected: a
-    ValueError (overflow) or finite fields."""
+    both control points flung ~2e19, corrected along Z then Y: gave Solution(volume=0.0,
+    plain_volume=nan). Fixed: a ValueError (overflow), as for the other fields."""
     v = np.array([[0, 0, 0], [0.25, 0, 0], [0, 0.25, 0], [0.125, 0.125, 0]]) + 1e15
     f = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
     lat = vp.Lattice((1, 1, 2), "LINEAR", bounds=((1e15, 1e15, 1000083610590425.5),

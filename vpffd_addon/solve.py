@@ -312,7 +312,8 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         warnings.append(f"pins on vertices {sorted(st.unmet_pins)} could not reach their targets "
                         "(conflicting pins, immobile control points or missing directions)")
     st.ensure(0, 1, 2)
-    if not (np.isfinite(st.X).all() and np.isfinite(st.P).all() and np.isfinite(st.volumes).all()):
+    if not (np.isfinite(st.X).all() and np.isfinite(st.P).all() and np.isfinite(st.volumes).all()
+            and np.isfinite(plain).all()):
         raise ValueError(_OVERFLOW)
 
     total = float(st.volumes.sum())

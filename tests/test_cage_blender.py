@@ -356,3 +356,49 @@ def test_mobility_group_of_the_cage_keeps_unassigned_points_still(ext):
     moved = np.abs(points - user).max(1)
     fixed = np.setdiff1d(np.arange(len(co)), free)
     assert moved[fixed].max() <= 1e-9 and moved[free].max() > 1e-3
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_cages_and_deformations_keep_the_volume_in_blender(ext, seed):
+    """Random cages (jittered boxes, extruded discs of random polygons) as cage objects, deformed
+    by random shape keys: the evaluated mesh (float32) keeps its volume to 1e-5."""
+    rng = np.random.default_rng(seed)
+    cage_mod = ext.module.operators.cage
+    if seed % 2 == 0:
+        box = core.box_cage(tuple(int(n) for n in rng.integers(1, 4, 3)), ((-1.0,) * 3, (1.0,) * 3))
+        points = box.rest_points + rng.uniform(-0.08, 0.08, (box.n_points, 3))
+        cells = box.cells
+    else:
+        k = int(rng.integers(3, 8))
+        ang = np.arange(k) * 2 * np.pi / k + rng.uniform(-0.15, 0.15, k) * 2 * np.pi / k
+        disc = np.concatenate([np.stack([r * np.cos(ang), r * np.sin(ang), 0 * ang], 1) for r in (0.6, 1.3)])
+        polys = [list(range(k))] + [[i, (i + 1) % k, k + (i + 1) % k, k + i] for i in range(k)]
+        points, cells = core.extrude(disc - [0, 0, 1.0], polys, (0, 0, 2.0), int(rng.integers(1, 4)))
+    cage_ob = cage_mod.cage_object("Random Cage", points, cells)
+    bpy.context.scene.collection.objects.link(cage_ob)
+    cage_ob.location = rng.normal(0, 0.5, 3)
+    cage_ob.rotation_euler = rng.uniform(-1, 1, 3)
+    ball = _sphere(radius=0.45)
+    ball.location = cage_ob.location
+    ball.rotation_euler = rng.uniform(-1, 1, 3)
+    cage_ob.shape_key_add(name="Basis")
+    key = cage_ob.shape_key_add(name="Random")
+    moved = np.asarray(points) + rng.normal(0, 0.18, np.shape(points))
+    key.data.foreach_set("co", moved.astype(np.float32).ravel())
+    key.value = 0.0
+    key.keyframe_insert("value", frame=1)
+    key.value = 1.0
+    key.keyframe_insert("value", frame=5)
+    rest = _volume(ball)
+    bpy.context.scene.frame_set(1)       # the cage's rest shape is the one shown when binding
+    axes = ["XYZ", "XY", "Z", "YZ"][seed]
+    assert _bind(ball, lattice=cage_ob, axes=axes, cage_depth=int(rng.integers(1, 4)),
+                 volume_scale=float(rng.uniform(0.8, 1.2))) == {"FINISHED"}
+    eng = ext.module.operators.engine
+    scale = ball.vpffd.volume_scale
+    for frame in range(1, 6):
+        bpy.context.scene.frame_set(frame)
+        info = eng.stats(ball)
+        assert info.get("error") is None, info
+        assert not info.get("warnings"), info
+        assert abs(_volume(ball) / (scale * rest) - 1) <= VOLUME_TOL, (frame, _volume(ball) / rest)

@@ -31,8 +31,10 @@ import vpffd_addon as core  # noqa: E402  (repository copy: builds the test cage
 
 try:
     from . import extension_harness as eh
+    from .test_extension_blender import _evaluated
 except ImportError:
     import extension_harness as eh
+    from test_extension_blender import _evaluated
 
 EXAMPLES = int(os.environ.get("VPFFD_FUZZ_CAGE_BLENDER_EXAMPLES", "12"))
 RANDOM = os.environ.get("VPFFD_FUZZ_RANDOM", "") not in ("", "0")
@@ -45,18 +47,6 @@ def _co(mesh):
     buf = np.empty(len(mesh.vertices) * 3, np.float32)
     mesh.vertices.foreach_get("co", buf)
     return buf
-
-
-def _evaluated(ob):
-    ev = ob.evaluated_get(bpy.context.evaluated_depsgraph_get())
-    me = ev.data
-    co = np.empty(len(me.vertices) * 3, np.float32)
-    me.vertices.foreach_get("co", co)
-    me.calc_loop_triangles()
-    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
-    me.loop_triangles.foreach_get("vertices", tris)
-    M = np.array(ev.matrix_world, dtype=np.float64)
-    return co.reshape(-1, 3).astype(np.float64) @ M[:3, :3].T + M[:3, 3], tris.reshape(-1, 3)
 
 
 def _volume(co, tris):

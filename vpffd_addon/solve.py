@@ -308,6 +308,12 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
                                  "(no lattice influence, all mobility 0, or a lattice with one point per axis)")
             what = "the volume" if not islands else f"the volume of islands {np.flatnonzero(unmet).tolist()}"
             warnings.append(f"{what} could not reach the target along the given directions")
+    if preserve_volume and m:
+        noise = b.rest_volume_noise if islands else np.array([b.rest_volume_noise.sum()])
+        if (noise > st.met_rel * st.vol_scale).any():
+            warnings.append(f"the volume is below the rounding of its terms in {b.dtype.name} (the mesh is "
+                            "tiny, or open and far from the lattice centre): it is kept only to about "
+                            f"{float((noise / st.vol_scale).max()):.0e} of itself")
     if warnings or st.unmet_pins:
         # A refused step matters only when its share was not made up by the other directions.
         warnings.extend(dict.fromkeys(st.skipped))

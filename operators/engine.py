@@ -244,6 +244,9 @@ def _update(obj, depsgraph, force):
             return False
         if obj.mode == "EDIT":
             _set_stats(obj, **{**stats(obj), "error": "paused while the mesh is in Edit Mode"})
+            state = _cache.get(uid)
+            if state is not None:
+                state.signature = None   # leaving Edit Mode solves again, which clears the message
             return False
         mesh = obj.data
         if meshio.topology_signature(mesh) != tuple(s.bound_topology):

@@ -497,3 +497,20 @@ def test_fold_attribute_holds_the_jacobian_determinant(ext):
     with bpy.context.temp_override(object=ball, active_object=ball):
         bpy.ops.object.vpffd_unbind()
     assert "vpffd_jacobian" not in ball.data.attributes
+
+
+def test_leaving_edit_mode_unchanged_clears_the_paused_message(ext):
+    eng = _engine(ext)
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat, 0.5)
+    _bind(ball, lattice=lat, axes="XY")
+    bpy.context.scene.frame_set(15)
+    assert eng.stats(ball).get("error") is None
+    bpy.context.view_layer.objects.active = ball
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.context.view_layer.update()
+    assert "Edit Mode" in (eng.stats(ball).get("error") or "")
+    bpy.ops.object.mode_set(mode="OBJECT")         # nothing moved: the inputs are as before
+    bpy.context.view_layer.update()
+    assert eng.stats(ball).get("error") is None

@@ -237,6 +237,13 @@ def _update(obj, depsgraph, force):
             _set_stats(obj, error="the VP-FFD modifier was removed: Bind again, or Unbind")
             return False
         if not force and not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
+            if depsgraph.mode != "RENDER":
+                # Switched off in the viewport: the panel says so instead of an error of an earlier
+                # solve (the last figures stay, e.g. from Check Folds); switching it on solves again.
+                _set_stats(obj, **{**stats(obj), "error": None, "switched_off": True})
+                state = _cache.get(uid)
+                if state is not None:
+                    state.signature = None
             return False  # switched off for this evaluation, like any modifier
         if obj.data.users > 1:
             _set_stats(obj, error=f"mesh '{obj.data.name}' is shared by {obj.data.users} objects "

@@ -86,6 +86,8 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
         box = layout.box()
         if info.get("error"):
             box.label(text=info["error"], icon="ERROR")
+        if info.get("switched_off"):
+            box.label(text="The VP-FFD modifier is switched off in the viewport", icon="HIDE_ON")
         if "volume_percent" in info:
             box.label(text=f"Volume {info['volume_percent']:.4f}% of rest "
                            f"(plain lattice: {info['plain_percent']:.2f}%)")

@@ -514,3 +514,24 @@ def test_leaving_edit_mode_unchanged_clears_the_paused_message(ext):
     bpy.ops.object.mode_set(mode="OBJECT")         # nothing moved: the inputs are as before
     bpy.context.view_layer.update()
     assert eng.stats(ball).get("error") is None
+
+
+def test_switched_off_modifier_says_so_and_switching_on_solves_again(ext):
+    eng = _engine(ext)
+    ball = _sphere()
+    lat = _lattice()
+    _animate_squash(lat, 0.5)
+    _bind(ball, lattice=lat, axes="XY")
+    bpy.context.scene.frame_set(15)
+    ball.vpffd.lattice = None                      # an error while on ...
+    bpy.context.view_layer.update()
+    assert "lattice" in (eng.stats(ball).get("error") or "")
+    ball.vpffd.enabled = False                     # ... is not kept once switched off
+    bpy.context.view_layer.update()
+    assert eng.stats(ball).get("switched_off") and eng.stats(ball).get("error") is None
+    ball.vpffd.lattice = lat
+    ball.vpffd.enabled = True
+    bpy.context.view_layer.update()
+    info = eng.stats(ball)
+    assert not info.get("switched_off") and info.get("error") is None
+    assert abs(info["volume_percent"] - 100) <= 100 * VOLUME_TOL

@@ -499,14 +499,20 @@ def test_fold_attribute_holds_the_jacobian_determinant(ext):
     assert "vpffd_jacobian" not in ball.data.attributes
 
 
-def test_leaving_edit_mode_unchanged_clears_the_paused_message(ext):
-    eng = _engine(ext)
+def _squashed_bound_ball(eng):
+    """(ball bound with XY correction, its lattice) at frame 15 of a squash, solved without error."""
     ball = _sphere()
     lat = _lattice()
     _animate_squash(lat, 0.5)
     _bind(ball, lattice=lat, axes="XY")
     bpy.context.scene.frame_set(15)
     assert eng.stats(ball).get("error") is None
+    return ball, lat
+
+
+def test_leaving_edit_mode_unchanged_clears_the_paused_message(ext):
+    eng = _engine(ext)
+    ball, _ = _squashed_bound_ball(eng)
     bpy.context.view_layer.objects.active = ball
     bpy.ops.object.mode_set(mode="EDIT")
     bpy.context.view_layer.update()
@@ -518,11 +524,7 @@ def test_leaving_edit_mode_unchanged_clears_the_paused_message(ext):
 
 def test_switched_off_modifier_says_so_and_switching_on_solves_again(ext):
     eng = _engine(ext)
-    ball = _sphere()
-    lat = _lattice()
-    _animate_squash(lat, 0.5)
-    _bind(ball, lattice=lat, axes="XY")
-    bpy.context.scene.frame_set(15)
+    ball, lat = _squashed_bound_ball(eng)
     ball.vpffd.lattice = None                      # an error while on ...
     bpy.context.view_layer.update()
     assert "lattice" in (eng.stats(ball).get("error") or "")

@@ -155,20 +155,13 @@ def _build_scene(verts, tris, points):
     import bpy
 
     scene = bpy.context.scene
-    V, F = len(verts), len(tris)
     nu, nv, nw = LATTICE_SHAPE
     n_points = nu * nv * nw
 
     # Mesh at identity, built through foreach_set only.
-    me = bpy.data.meshes.new("bench_mesh")
-    me.vertices.add(V)
-    me.vertices.foreach_set("co", verts.astype(np.float32).ravel())
-    me.loops.add(3 * F)
-    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
-    me.polygons.add(F)
-    me.polygons.foreach_set("loop_start", np.arange(0, 3 * F, 3, dtype=np.int32))
-    me.update(calc_edges=True)
-    ob = bpy.data.objects.new("bench_mesh", me)
+    _harness()                        # puts tests/ on sys.path
+    from blender_ref import triangle_mesh
+    ob = bpy.data.objects.new("bench_mesh", triangle_mesh(verts, tris, "bench_mesh"))
     scene.collection.objects.link(ob)
 
     # Lattice: rest co spans [-4.5, 4.5] (unit spacing); the object scale maps it onto [-0.5, 0.5].

@@ -48,9 +48,11 @@ def _get_vec3(collection, prop, n):
     return buf.reshape(n, 3).astype(np.float64)
 
 
-def _build_mesh(verts, tris):
-    """Mesh datablock from verts (V,3) and triangles (F,3), all through foreach_set."""
-    me = bpy.data.meshes.new(_PREFIX + "mesh")
+def triangle_mesh(verts, tris, name=_PREFIX + "mesh"):
+    """Mesh datablock from verts (V,3) and triangles (F,3), all through foreach_set. The one
+    helper the tests and the benchmark build their meshes with."""
+    verts, tris = np.asarray(verts), np.asarray(tris)
+    me = bpy.data.meshes.new(name)
     me.vertices.add(len(verts))
     me.vertices.foreach_set("co", verts.astype(np.float32).ravel())
     if len(tris):
@@ -119,7 +121,7 @@ def lattice_modifier_reference(verts, tris, shape, interpolation, deformed_point
     lat_ob = bpy.data.objects.new(_PREFIX + "lattice", lat)
     scene.collection.objects.link(lat_ob)
 
-    me = _build_mesh(verts, tris)
+    me = triangle_mesh(verts, tris)
     ob = bpy.data.objects.new(_PREFIX + "mesh", me)
     scene.collection.objects.link(ob)
     if lattice_matrix is not None:

@@ -23,8 +23,10 @@ from vpffd_addon import pointcache as pcache  # noqa: E402
 
 try:
     from . import extension_harness as eh
+    from .blender_ref import triangle_mesh
 except ImportError:
     import extension_harness as eh
+    from blender_ref import triangle_mesh
 
 FIRST, LAST = 1, 10
 FRAMES = range(FIRST, LAST + 1)
@@ -33,15 +35,7 @@ FRAMES = range(FIRST, LAST + 1)
 # ------------------------------------------------------------------------------------ helpers
 
 def _mesh_object(name, verts, tris):
-    me = bpy.data.meshes.new(name)
-    me.vertices.add(len(verts))
-    me.vertices.foreach_set("co", np.asarray(verts, np.float32).ravel())
-    me.loops.add(tris.size)
-    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
-    me.polygons.add(len(tris))
-    me.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
-    me.update(calc_edges=True)
-    ob = bpy.data.objects.new(name, me)
+    ob = bpy.data.objects.new(name, triangle_mesh(verts, tris, name))
     bpy.context.scene.collection.objects.link(ob)
     return ob
 

@@ -13,8 +13,10 @@ import vpffd_addon as core  # noqa: E402  (repository copy: only for building te
 
 try:
     from . import extension_harness as eh
+    from .blender_ref import triangle_mesh
 except ImportError:
     import extension_harness as eh
+    from blender_ref import triangle_mesh
 
 VOLUME_TOL = 1e-5
 
@@ -22,15 +24,7 @@ VOLUME_TOL = 1e-5
 # ------------------------------------------------------------------------------------ helpers
 
 def _mesh_object(name, verts, tris, location=(0, 0, 0)):
-    me = bpy.data.meshes.new(name)
-    me.vertices.add(len(verts))
-    me.vertices.foreach_set("co", np.asarray(verts, np.float32).ravel())
-    me.loops.add(tris.size)
-    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
-    me.polygons.add(len(tris))
-    me.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
-    me.update(calc_edges=True)
-    ob = bpy.data.objects.new(name, me)
+    ob = bpy.data.objects.new(name, triangle_mesh(verts, tris, name))
     ob.location = location
     bpy.context.scene.collection.objects.link(ob)
     return ob

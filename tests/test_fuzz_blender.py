@@ -70,8 +70,10 @@ import vpffd_addon as core  # noqa: E402  (repository copy: only to build meshes
 
 try:
     from . import extension_harness as eh
+    from .blender_ref import triangle_mesh
 except ImportError:
     import extension_harness as eh
+    from blender_ref import triangle_mesh
 
 EXAMPLES = int(os.environ.get("VPFFD_FUZZ_EXAMPLES", "40"))
 STEPS = int(os.environ.get("VPFFD_FUZZ_STEPS", "30"))
@@ -242,14 +244,7 @@ def _link(ob):
 
 
 def _mesh_object(verts, tris, rng):
-    me = bpy.data.meshes.new("FuzzMesh")
-    me.vertices.add(len(verts))
-    me.vertices.foreach_set("co", np.asarray(verts, np.float32).ravel())
-    me.loops.add(tris.size)
-    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
-    me.polygons.add(len(tris))
-    me.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
-    me.update(calc_edges=True)
+    me = triangle_mesh(verts, tris, "FuzzMesh")
     ob = _link(bpy.data.objects.new("FuzzMesh", me))
     ob[KIND], ob[OID] = "mesh", _new_id("ob")
     V = len(verts)

@@ -259,15 +259,8 @@ def test_the_extension_solves_on_the_gpu_when_asked_and_says_why_when_it_does_no
     engine = vpffd.module.operators.engine
     eh.reset_scene()
     verts, tris = vp.icosphere(3, 0.8)
-    me = bpy.data.meshes.new("Ball")
-    me.vertices.add(len(verts))
-    me.vertices.foreach_set("co", verts.astype(np.float32).ravel())
-    me.loops.add(tris.size)
-    me.loops.foreach_set("vertex_index", tris.astype(np.int32).ravel())
-    me.polygons.add(len(tris))
-    me.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
-    me.update(calc_edges=True)
-    ob = bpy.data.objects.new("Ball", me)
+    triangle_mesh = pytest.importorskip("blender_ref").triangle_mesh
+    ob = bpy.data.objects.new("Ball", triangle_mesh(verts, tris, "Ball"))
     bpy.context.scene.collection.objects.link(ob)
     lt = bpy.data.lattices.new("L")
     lt.points_u = lt.points_v = lt.points_w = 4

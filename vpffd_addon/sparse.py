@@ -6,7 +6,7 @@ class Sparse:
     """(n_rows, n_cols) matrix stored as row index, column index and value arrays, sorted by row.
 
     Only what the cage refinement needs: products with vectors or (n, k) blocks from either side,
-    composition, and dense rows.
+    and composition.
     """
 
     def __init__(self, rows, cols, vals, shape):
@@ -52,13 +52,3 @@ class Sparse:
         k = start[self.cols][rep] + offset
         return Sparse(self.rows[rep], other.cols[k], self.vals[rep] * other.vals[k],
                       (self.shape[0], other.shape[1]))
-
-    def dense_rows(self, rows):
-        """Rows `rows` (k,) as a dense (k, n_cols) float64 array."""
-        rows = np.asarray(rows, np.int64)
-        start = np.searchsorted(self.rows, rows)
-        end = np.searchsorted(self.rows, rows, side="right")
-        out = np.zeros((len(rows), self.shape[1]))
-        for i, (a, b) in enumerate(zip(start, end)):
-            out[i, self.cols[a:b]] = self.vals[a:b]
-        return out

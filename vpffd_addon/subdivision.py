@@ -129,13 +129,6 @@ class Complex:
         owner = np.repeat(np.arange(len(cells)), [len(faces) for faces in cells])
         return cls(n_points, arr, sizes, owner, len(cells))
 
-    def cells(self):
-        """The cells as tuples of face loops (tuples of ints)."""
-        out = [[] for _ in range(self.n_cells)]
-        for loop, size, c in zip(self.loops.tolist(), self.sizes.tolist(), self.cell.tolist()):
-            out[c].append(tuple(loop[:size]))
-        return [tuple(f) for f in out]
-
     def classify(self):
         """Boundary control of section 3, from the topology alone: (boundary_face (n_faces,),
         sharp (n_edges,), boundary_edge (n_edges,), point kind (n_points,): 0 interior, 1 smooth

@@ -214,6 +214,18 @@ int global_index() {{ return group_index() * GROUP + int(gl_LocalInvocationID.x)
 
 # Each kernel: (samplers, images, push constants, body). Sampler/image slots are numbered
 # distinctly within a kernel.
+# End of the two reduction kernels: a tree sum of each work group's vec2 `v` in shared memory,
+# written by the group's first invocation as one texel of `partial`.
+_GROUP_SUM_TAIL = """
+  acc[t] = v;
+  barrier();
+  for (uint h = GROUP / 2u; h > 0u; h >>= 1) {
+    if (t < h) acc[t] += acc[t + h];
+    barrier();
+  }
+  if (t == 0u) imageStore(partial, AT(group_index()), vec4(acc[0], 0.0, 0.0));
+}"""
+
 _KERNELS = {
     "forward": (
         ("x0", "wuv", "ww", "block_run", "run_idx", "disp"), (("x_out", "R32F", "WRITE"),),
@@ -259,14 +271,7 @@ void main() {
     float gv = FETCH(g, i).r;
     v = vec2(FETCH(x0, i)[comp] * gv, abs(gv * FETCH(s, i).r));
   }
-  acc[t] = v;
-  barrier();
-  for (uint h = GROUP / 2u; h > 0u; h >>= 1) {
-    if (t < h) acc[t] += acc[t + h];
-    barrier();
-  }
-  if (t == 0u) imageStore(partial, AT(group_index()), vec4(acc[0], 0.0, 0.0));
-}"""),
+""" + _GROUP_SUM_TAIL),
     "pieces": (
         ("wuv", "ww", "g"), (("piece", "R32F", "WRITE"),), (("INT", "n"),), """
 void main() {
@@ -302,14 +307,7 @@ void main() {
     float a = FETCH(alpha, i).r;
     v = vec2(a * a, a * FETCH(disp, i)[comp]);
   }
-  acc[t] = v;
-  barrier();
-  for (uint h = GROUP / 2u; h > 0u; h >>= 1) {
-    if (t < h) acc[t] += acc[t + h];
-    barrier();
-  }
-  if (t == 0u) imageStore(partial, AT(group_index()), vec4(acc[0], 0.0, 0.0));
-}"""),
+""" + _GROUP_SUM_TAIL),
     "update": (
         ("alpha",), (("disp_io", "RGBA32F", "READ_WRITE"),), (("INT", "n"), ("INT", "comp"), ("FLOAT", "lam")), """
 void main() {

@@ -3,12 +3,55 @@ sections 2.2 and 3), written with dictionaries and loops: the reference that the
 `vpffd_addon.subdivision` is checked against (tests/test_cage_core.py)."""
 import numpy as np
 
-from vpffd_addon.cage import Topology as _Incidence
 from vpffd_addon.sparse import Sparse
 
 
+class _Incidence:
+    """Incidence of a cell complex, with dictionaries: faces, edges and what contains what.
+
+    cells: list of cells, each a tuple of faces, each a tuple of point indices (outward loops).
+    Faces are keyed by their sorted point indices, edges by (low, high).
+    """
+
+    def __init__(self, n_points, cells):
+        self.n_points = n_points
+        self.cells = cells
+        self.face_id, self.face_verts, self.face_cells = {}, [], []
+        self.edge_id, self.edge_verts, self.edge_faces, self.edge_cells = {}, [], [], []
+        self.point_cells = [[] for _ in range(n_points)]
+        for c, faces in enumerate(cells):
+            seen_edges = set()
+            for f in faces:
+                key = tuple(sorted(f))
+                fid = self.face_id.get(key)
+                if fid is None:
+                    fid = self.face_id[key] = len(self.face_verts)
+                    self.face_verts.append(f)
+                    self.face_cells.append([])
+                    for a, b in zip(f, f[1:] + f[:1]):
+                        ekey = (a, b) if a < b else (b, a)
+                        eid = self.edge_id.get(ekey)
+                        if eid is None:
+                            eid = self.edge_id[ekey] = len(self.edge_verts)
+                            self.edge_verts.append(ekey)
+                            self.edge_faces.append([])
+                            self.edge_cells.append([])
+                        self.edge_faces[eid].append(fid)
+                self.face_cells[fid].append(c)
+                for a, b in zip(f, f[1:] + f[:1]):
+                    seen_edges.add((a, b) if a < b else (b, a))
+            for ekey in seen_edges:
+                self.edge_cells[self.edge_id[ekey]].append(c)
+            for p in {p for f in faces for p in f}:
+                self.point_cells[p].append(c)
+
+    def cell_points(self, c):
+        """Sorted distinct points of cell c."""
+        return sorted({p for f in self.cells[c] for p in f})
+
+
 class Topology(_Incidence):
-    """The core's incidence tables plus what the rules need per point, and the classification."""
+    """The incidence tables plus what the rules need per point, and the classification."""
 
     def __init__(self, n_points, cells):
         super().__init__(n_points, cells)

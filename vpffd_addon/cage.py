@@ -21,50 +21,6 @@ CELL_TEMPLATES = {
 }
 
 
-class Topology:
-    """Incidence of a cell complex: faces, edges and what contains what.
-
-    cells: list of cells, each a tuple of faces, each a tuple of point indices (outward loops).
-    Faces are keyed by their sorted point indices, edges by (low, high).
-    """
-
-    def __init__(self, n_points, cells):
-        self.n_points = n_points
-        self.cells = cells
-        self.face_id, self.face_verts, self.face_cells = {}, [], []
-        self.edge_id, self.edge_verts, self.edge_faces, self.edge_cells = {}, [], [], []
-        self.point_cells = [[] for _ in range(n_points)]
-        for c, faces in enumerate(cells):
-            seen_edges = set()
-            for f in faces:
-                key = tuple(sorted(f))
-                fid = self.face_id.get(key)
-                if fid is None:
-                    fid = self.face_id[key] = len(self.face_verts)
-                    self.face_verts.append(f)
-                    self.face_cells.append([])
-                    for a, b in zip(f, f[1:] + f[:1]):
-                        ekey = (a, b) if a < b else (b, a)
-                        eid = self.edge_id.get(ekey)
-                        if eid is None:
-                            eid = self.edge_id[ekey] = len(self.edge_verts)
-                            self.edge_verts.append(ekey)
-                            self.edge_faces.append([])
-                            self.edge_cells.append([])
-                        self.edge_faces[eid].append(fid)
-                self.face_cells[fid].append(c)
-                for a, b in zip(f, f[1:] + f[:1]):
-                    seen_edges.add((a, b) if a < b else (b, a))
-            for ekey in seen_edges:
-                self.edge_cells[self.edge_id[ekey]].append(c)
-            for p in {p for f in faces for p in f}:
-                self.point_cells[p].append(c)
-
-    def cell_points(self, c):
-        """Sorted distinct points of cell c."""
-        return sorted({p for f in self.cells[c] for p in f})
-
-
 def _parse_cell(i, cell, n_points):
     """One cell -> tuple of faces (tuples of ints); raises ValueError naming cell i."""
     try:
@@ -173,26 +129,10 @@ class Cage(Bounded):
         if not cells:
             raise ValueError("the cage has no cells: give at least one closed cell")
         parsed = [_parse_cell(i, c, N) for i, c in enumerate(cells)]
-        topo = Topology(N, parsed)
-        unused = [p for p in range(N) if not topo.point_cells[p]]
-        if unused:
-            raise ValueError(f"{len(unused)} cage points belong to no cell (first: {unused[0]})")
-        for fid, owners in enumerate(topo.face_cells):
-            if len(owners) > 2:
-                raise ValueError(f"face {list(topo.face_verts[fid])} is shared by {len(owners)} cells "
-                                 f"{owners}; a face can bound at most two cells")
-            if len(owners) == 2:
-                c0, c1 = owners
-                f0 = _face_in(parsed[c0], topo.face_verts[fid])
-                f1 = _face_in(parsed[c1], topo.face_verts[fid])
-                if _same_direction(f0, f1):
-                    raise ValueError(f"cells {c0} and {c1} share face {list(f0)} in the same orientation: "
-                                     "one of them is inside out (a shared face runs opposite ways "
-                                     "in its two cells)")
+        _check_incidence(N, parsed)
         self._points = P
         self._regions = {}
         self.cells = parsed
-        self.topology = topo
         self._check_rest_cells()
 
     @property
@@ -244,7 +184,7 @@ class Cage(Bounded):
         from .embedding import locate_in_tets
         probes, probe_cell, tets, owner = [], [], [], []
         for c, faces in enumerate(self.cells):
-            pts = self.topology.cell_points(c)
+            pts = sorted({p for f in faces for p in f})
             loops = [P[list(f)] for f in faces]
             mids = [0.5 * (q + np.roll(q, -1, 0)) for q in loops]
             own = np.concatenate([P[pts], P[pts].mean(0)[None]] + mids)
@@ -263,14 +203,36 @@ class Cage(Bounded):
         return f"Cage({self.n_points} points, {self.n_cells} cells)"
 
 
-def _face_in(faces, loop):
-    key = sorted(loop)
-    return next(f for f in faces if sorted(f) == key)
+def _check_incidence(n_points, cells):
+    """Raise ValueError for points no cell uses, a face in more than two cells, or a face two cells
+    list in the same direction (one of them inside out). cells: parsed face loops."""
+    from .subdivision import Complex, _unique_rows
+    cx = Complex.from_cells(n_points, cells)
+    used = np.zeros(n_points, bool)
+    used[cx.he_from] = True
+    unused = np.flatnonzero(~used)
+    if len(unused):
+        raise ValueError(f"{len(unused)} cage points belong to no cell (first: {int(unused[0])})")
 
-
-def _same_direction(f0, f1):
-    e0 = {(a, b) for a, b in zip(f0, f0[1:] + f0[:1])}
-    return any((a, b) in e0 for a, b in zip(f1, f1[1:] + f1[:1]))
+    def loop(i):
+        return [int(p) for p in cx.loops[i, :cx.sizes[i]]]
+    crowded = np.flatnonzero(cx.face_cells > 2)
+    if len(crowded):
+        f = crowded[0]
+        owners = sorted(int(c) for c in cx.cell[cx.loop_face == f])
+        raise ValueError(f"face {loop(cx.face_loop[f])} is shared by {len(owners)} cells {owners}; a face "
+                         "can bound at most two cells")
+    # Within a cell every directed edge is used once (`_parse_cell`), so a directed edge found twice
+    # on one face comes from two cells that list the face the same way round.
+    he_face = cx.loop_face[cx.he_loop]
+    _, inverse = _unique_rows(np.stack([he_face, cx.he_from, cx.he_to], 1))
+    twice = np.flatnonzero(np.bincount(inverse)[inverse] > 1)
+    if len(twice):
+        f = he_face[twice[0]]
+        l0, l1 = sorted(np.flatnonzero(cx.loop_face == f), key=lambda i: cx.cell[i])
+        raise ValueError(f"cells {int(cx.cell[l0])} and {int(cx.cell[l1])} share face {loop(l0)} in the same "
+                         "orientation: one of them is inside out (a shared face runs opposite ways in its "
+                         "two cells)")
 
 
 def box_cage(resolution=(2, 2, 2), bounds=((-1.0,) * 3, (1.0,) * 3)):

@@ -454,6 +454,21 @@ def _bind_or_error(test, lat, verts, tris, influence, dtype):
     return b
 
 
+def _hostile_binding(rng, mesh, lattice, points, influence, dtype):
+    """(verts, tris, lattice, binding, control points) drawn from the strategies' values, or None
+    when making the lattice or binding raised the expected ValueError (counted)."""
+    verts, tris = _mesh(mesh["kind"], rng, mesh["scale"], mesh["offset"])
+    try:
+        lat = _lattice(rng, verts, lattice["shape"], lattice["kinds"], lattice["bounds"])
+    except ValueError as exc:
+        _value_error(exc, "lattice")
+        return None
+    b = _bind_or_error("bind", lat, verts, tris, _influence(influence, len(verts), rng), dtype)
+    if b is None:
+        return None
+    return verts, tris, lat, b, _points(lat, rng, points["how"], points["magnitude"])
+
+
 @_fuzz_settings()
 @given(mesh=MESH, lattice=LATTICE, points=POINTS, influence=INFLUENCE,
        dtype=st.sampled_from([np.float32, np.float64]), seed=st.integers(0, 2 ** 32 - 1))
@@ -461,17 +476,11 @@ def test_hostile_meshes_bind_and_deform_finitely(mesh, lattice, points, influenc
     rng = np.random.default_rng(seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)   # overflow warnings are fine; NaN is not
-        verts, tris = _mesh(mesh["kind"], rng, mesh["scale"], mesh["offset"])
-        try:
-            lat = _lattice(rng, verts, lattice["shape"], lattice["kinds"], lattice["bounds"])
-        except ValueError as exc:
-            _value_error(exc, "lattice")
+        made = _hostile_binding(rng, mesh, lattice, points, influence, dtype)
+        if made is None:
             return
-        b = _bind_or_error("bind", lat, verts, tris, _influence(influence, len(verts), rng), dtype)
-        if b is None:
-            return
+        verts, tris, lat, b, P = made
         _count("bind", "ok")
-        P = _points(lat, rng, points["how"], points["magnitude"])
         try:
             out = b.deform(P)
         except ValueError as exc:
@@ -510,16 +519,10 @@ def test_hostile_solves_are_finite_and_self_consistent(mesh, lattice, points, so
     rng = np.random.default_rng(seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        verts, tris = _mesh(mesh["kind"], rng, mesh["scale"], mesh["offset"])
-        try:
-            lat = _lattice(rng, verts, lattice["shape"], lattice["kinds"], lattice["bounds"])
-        except ValueError as exc:
-            _value_error(exc, "lattice")
+        made = _hostile_binding(rng, mesh, lattice, points, influence, dtype)
+        if made is None:
             return
-        b = _bind_or_error("bind", lat, verts, tris, _influence(influence, len(verts), rng), dtype)
-        if b is None:
-            return
-        P = _points(lat, rng, points["how"], points["magnitude"])
+        verts, tris, lat, b, P = made
         axes, directions = _directions(rng, solve["directions"])
         mobility = {None: None, "random": rng.uniform(0, 1, lat.n_points),
                     "zeros": np.zeros(lat.n_points),

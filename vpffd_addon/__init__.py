@@ -13,12 +13,13 @@ from .binding import Binding, bind
 from .cage import Cage, box_cage, extrude
 from .cage_binding import CageBinding
 from .jacobian import jacobian_det
+from .mesh import Topology
 from .lattice import Lattice
 from .pointcache import read_mdd, read_pc2, write_mdd, write_pc2
 from .shapes import box, icosphere
 from .solve import Solution
 from .volume import signed_volume
 
-__all__ = ["INTERPOLATIONS", "Binding", "Cage", "CageBinding", "Lattice", "Solution", "bind", "box", "box_cage", "extrude", "icosphere",
+__all__ = ["INTERPOLATIONS", "Binding", "Cage", "CageBinding", "Lattice", "Solution", "Topology", "bind", "box", "box_cage", "extrude", "icosphere",
            "jacobian_det", "read_mdd", "read_pc2", "signed_volume", "write_mdd", "write_pc2"]
 __version__ = "0.1.0"

@@ -14,28 +14,45 @@ INTERPOLATIONS = ("LINEAR", "CARDINAL", "CATMULL_ROM", "BSPLINE", "BEZIER")
 _CARDINAL_FC = {"CARDINAL": 0.71, "CATMULL_ROM": 0.5}
 
 
-def _local_weights(t, kind):
-    """Blender's 4-tap weights and their t-derivatives for t (V,) in [0, 1): two (V, 4) arrays."""
+def _local_weights(t, kind, derivative=True):
+    """Blender's 4-tap weights and their t-derivatives for t (V,) in [0, 1): two (V, 4) arrays
+    (the second is None without `derivative`)."""
+    w = np.empty((len(t), 4))
+    dw = np.empty((len(t), 4)) if derivative else None
+    if kind == "LINEAR":
+        w[:, 0] = 0.0
+        np.subtract(1.0, t, out=w[:, 1])
+        w[:, 2] = t
+        w[:, 3] = 0.0
+        if derivative:
+            dw[:] = (0.0, -1.0, 1.0, 0.0)
+        return w, dw
     t2 = t * t
     t3 = t2 * t
-    if kind == "LINEAR":
-        z = np.zeros_like(t)
-        one = np.ones_like(t)
-        return np.stack([z, 1.0 - t, t, z], 1), np.stack([z, -one, one, z], 1)
     if kind == "BSPLINE":
         s = 1.0 - t
-        w = np.stack([s * s * s, 3 * t3 - 6 * t2 + 4, -3 * t3 + 3 * t2 + 3 * t + 1, t3], 1) / 6.0
-        dw = np.stack([-3 * s * s, 9 * t2 - 12 * t, -9 * t2 + 6 * t + 3, 3 * t2], 1) / 6.0
+        w[:, 0] = s * s * s
+        w[:, 1] = 3 * t3 - 6 * t2 + 4
+        w[:, 2] = -3 * t3 + 3 * t2 + 3 * t + 1
+        w[:, 3] = t3
+        w *= 1.0 / 6.0
+        if derivative:
+            dw[:, 0] = -3 * s * s
+            dw[:, 1] = 9 * t2 - 12 * t
+            dw[:, 2] = -9 * t2 + 6 * t + 3
+            dw[:, 3] = 3 * t2
+            dw *= 1.0 / 6.0
         return w, dw
     fc = _CARDINAL_FC[kind]
-    w = np.stack([-fc * t3 + 2 * fc * t2 - fc * t,
-                  (2 - fc) * t3 + (fc - 3) * t2 + 1,
-                  (fc - 2) * t3 + (3 - 2 * fc) * t2 + fc * t,
-                  fc * t3 - fc * t2], 1)
-    dw = np.stack([-3 * fc * t2 + 4 * fc * t - fc,
-                   3 * (2 - fc) * t2 + 2 * (fc - 3) * t,
-                   3 * (fc - 2) * t2 + 2 * (3 - 2 * fc) * t + fc,
-                   3 * fc * t2 - 2 * fc * t], 1)
+    w[:, 0] = -fc * t3 + 2 * fc * t2 - fc * t
+    w[:, 1] = (2 - fc) * t3 + (fc - 3) * t2 + 1
+    w[:, 2] = (fc - 2) * t3 + (3 - 2 * fc) * t2 + fc * t
+    w[:, 3] = fc * t3 - fc * t2
+    if derivative:
+        dw[:, 0] = -3 * fc * t2 + 4 * fc * t - fc
+        dw[:, 1] = 3 * (2 - fc) * t2 + 2 * (fc - 3) * t
+        dw[:, 2] = 3 * (fc - 2) * t2 + 2 * (3 - 2 * fc) * t + fc
+        dw[:, 3] = 3 * fc * t2 - 2 * fc * t
     return w, dw
 
 
@@ -86,16 +103,21 @@ def axis_taps(x, n, lo, hi, kind, derivative=False):
     i = np.floor(u)
     t = u - i
     i = i.astype(np.int64)
-    w4, dw4 = _local_weights(t, kind)
+    w, dw = _local_weights(t, kind, derivative)
     first = np.clip(i, 0, n - 1) - 1
-    # Fold each of Blender's taps i-1..i+2 (clamped to the grid) onto offsets 0..3 from `first`.
-    offsets = np.clip(i[:, None] - 1 + np.arange(4), 0, n - 1) - first[:, None]
-    rows = np.arange(V)
-    w = np.zeros((V, 4))
-    dw = np.zeros((V, 4))
-    for k in range(4):
-        w[rows, offsets[:, k]] += w4[:, k]
-        dw[rows, offsets[:, k]] += dw4[:, k]
+    # Blender's taps are i-1..i+2 clamped to the grid. Inside (1 <= i <= n-3) they are first..first+3
+    # as they stand; near and beyond the ends, fold the clamped taps onto offsets 0..3 from `first`.
+    edge = np.flatnonzero((i < 1) | (i > n - 3))
+    if len(edge):
+        ie = i[edge]
+        offsets = np.clip(ie[:, None] - 1 + np.arange(4), 0, n - 1) - first[edge, None]
+        for arr in ((w, dw) if derivative else (w,)):
+            src = arr[edge]
+            folded = np.zeros_like(src)
+            for j in range(4):
+                for k in range(4):
+                    folded[:, j] += np.where(offsets[:, k] == j, src[:, k], 0.0)
+            arr[edge] = folded
     if not derivative:
         return first, w
     return first, w, dw / du

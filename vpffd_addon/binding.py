@@ -11,7 +11,7 @@ import numpy as np
 from . import parallel
 from .bases import axis_taps
 from .lattice import Lattice
-from .mesh import check_tris, check_verts, connected_components, is_closed
+from .mesh import Topology, check_verts
 from .volume import gradient_component
 
 _BLOCK_SIZES = (64, 32, 16, 8)
@@ -203,7 +203,8 @@ class Binding(BindingBase):
         return np.bincount(keys, self._run_transpose(g).ravel(), k * N).reshape(-1, N)
 
 
-def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None, outside="FOLLOW"):
+def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None, outside="FOLLOW",
+         topology=None):
     """Bind a triangle mesh to `lattice` (a `Lattice`, or a `Cage` of any topology).
 
     rest_verts: (V, 3) vertex positions in lattice space. tris: (F, 3) vertex indices.
@@ -217,17 +218,22 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
     cells, so the embedding approaches the limit region); outside, what vertices outside the
     region do: "FOLLOW" (move with the closest point of the region's boundary) or "STAY".
     Returns a `cage_binding.CageBinding` then, with the same methods.
+
+    topology: a `Topology` of `tris` from an earlier bind (checked to match), so that binding the
+    same mesh at new positions (it moved through the lattice) only re-embeds them. The layout of
+    the result depends only on the arguments, never on an earlier binding.
     """
     from .cage import Cage
     if isinstance(lattice, Cage):
         from .cage_binding import bind_cage
-        return bind_cage(lattice, rest_verts, tris, influence, dtype, 3 if depth is None else depth, outside)
+        return bind_cage(lattice, rest_verts, tris, influence, dtype, 3 if depth is None else depth, outside,
+                         topology=topology)
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
     if depth is not None:
         raise ValueError("depth applies to cages only; a Lattice has no refinement")
     b = Binding()
-    verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype)
+    verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype, topology)
     V = b.n_verts
     taps = [axis_taps(verts[:, a], lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a])
             for a in range(3)]
@@ -235,8 +241,10 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
     # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded).
     cells = [first + 1 for first, _ in taps]          # first >= -1
     dims = [n + 1 for n in lattice.shape]
-    key = ((labels * dims[2] + cells[2]) * dims[1] + cells[1]) * dims[0] + cells[0]
-    order = np.argsort(key, kind="stable")
+    cell = (cells[2] * dims[1] + cells[1]) * dims[0] + cells[0]
+    n_cells = dims[0] * dims[1] * dims[2]
+    key = cell if b.n_islands == 1 else labels * n_cells + cell
+    order = stable_order(key) if int(key.max()) < 2 ** 32 else np.argsort(key, kind="stable")
     _, run_start, run_len = np.unique(key[order], return_index=True, return_counts=True)
     for bs in _BLOCK_SIZES:
         blocks_per_run = -(-run_len // bs)
@@ -253,7 +261,8 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
 
     Ku, Kv, Kw = (w.shape[1] for _, w in taps)
     wuv = np.zeros((n_slots, Kv * Ku), b.dtype)
-    wuv[slot] = (taps[1][1][:, :, None] * taps[0][1][:, None, :]).reshape(V, Kv * Ku)
+    wu, wv = (taps[a][1].astype(b.dtype, copy=False) for a in (0, 1))
+    wuv[slot] = (wv[:, :, None] * wu[:, None, :]).reshape(V, Kv * Ku)
     ww = np.zeros((n_slots, Kw), b.dtype)
     ww[slot] = taps[2][1] * s[:, None]
     b.slot_influence = np.zeros(n_slots, b.dtype)
@@ -280,8 +289,21 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
     return b
 
 
-def prepare(b, lattice, rest_verts, tris, influence, dtype):
+def stable_order(keys):
+    """np.argsort(keys, kind="stable") for non-negative integer keys below 2**32, as two passes of
+    NumPy's 16-bit radix sort (several times faster than a comparison sort of 32- or 64-bit keys)."""
+    keys = np.asarray(keys)
+    order = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    if keys.size and int(keys.max()) > 0xFFFF:
+        high = (keys[order] >> 16).astype(np.uint16)
+        order = order[np.argsort(high, kind="stable")]
+    return order
+
+
+def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
     """Validate a bind's inputs and fill the binding's mesh facts; shared by every kind of binding.
+    `topology` (a `Topology` of `tris`, or None to make one) carries what does not depend on the
+    positions.
     Returns (verts (V, 3), tris (F, 3), influence (V,), island labels (V,), coordinates relative
     to the volume origins (V, 3))."""
     dtype = np.dtype(dtype)
@@ -289,7 +311,13 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype):
         raise ValueError(f"dtype must be float32 or float64, got {dtype}")
     verts = check_verts(rest_verts, "rest_verts")
     V = len(verts)
-    tris = check_tris(tris, V)
+    if topology is None:
+        topology = Topology(tris, V)
+    elif not isinstance(topology, Topology):
+        raise ValueError(f"topology must be a vpffd_addon.Topology, got {type(topology).__name__}")
+    elif topology.n_verts != V or not topology.matches(tris):
+        raise ValueError("topology was made for other faces or another vertex count: make a new one")
+    tris = topology.tris
     if influence is None:
         s = np.ones(V)
     else:
@@ -299,19 +327,18 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype):
         if not np.isfinite(s).all():
             raise ValueError(f"influence has non-finite values at {int((~np.isfinite(s)).sum())} vertices")
     b.lattice, b.dtype, b.n_verts, b.n_faces = lattice, dtype, V, len(tris)
-    b.is_closed = is_closed(tris, V)
-    labels, n_islands = connected_components(tris, V)
-    b.n_islands = n_islands
+    b.topology = topology
+    b.is_closed = topology.is_closed
+    labels = topology.labels
+    b.n_islands = topology.n_islands
     # Internal coordinates are relative to a volume origin per island.
     if b.is_closed:
-        lo = np.full((n_islands, 3), np.inf)
-        hi = np.full((n_islands, 3), -np.inf)
-        np.minimum.at(lo, labels, verts)
-        np.maximum.at(hi, labels, verts)
+        lo, hi = topology.island_bounds(verts)
         b.island_origin = 0.5 * (lo + hi)
     else:
         b.island_origin = lattice.centre[None].copy()
-    rel = verts - (b.island_origin[labels] if b.is_closed else b.island_origin[0])
+    single = not b.is_closed or b.n_islands == 1
+    rel = verts - (b.island_origin[0] if single else b.island_origin[labels])
     return verts, tris, s, labels, rel
 
 
@@ -322,14 +349,18 @@ def finish(b, rel, tris, labels, n_slots):
     x0[:, slot] = rel.T
     b.x0 = x0
     # Faces as (3, F) slots, ordered by their lowest slot so that gathers walk memory forwards.
+    # Ties are broken by face index, so the order is the same whatever sort NumPy picks.
     corners = slot[tris]
-    corners = corners[np.argsort(corners.min(1), kind="stable")]
+    lowest = np.minimum(np.minimum(corners[:, 0], corners[:, 1]), corners[:, 2])
+    corners = corners[stable_order(lowest)]
     b.corner_parts = [np.ascontiguousarray(corners[fs].T) for fs in parallel.split(len(corners), V)]
     b.vertex_parts = parallel.split(V, V)
 
-    face_island = labels[tris[:, 0]]
-    pv = rel[tris]
-    face_vol = np.einsum("ij,ij->i", pv[:, 0], np.cross(pv[:, 1], pv[:, 2])) / 6.0
+    face_island = b.topology.face_island
+    x, y, z = (np.take(coord, tris) for coord in np.ascontiguousarray(rel.T))
+    face_vol = (x[:, 0] * (y[:, 1] * z[:, 2] - z[:, 1] * y[:, 2])
+                + y[:, 0] * (z[:, 1] * x[:, 2] - x[:, 1] * z[:, 2])
+                + z[:, 0] * (x[:, 1] * y[:, 2] - y[:, 1] * x[:, 2])) / 6.0
     b.rest_island_volumes = np.bincount(face_island, face_vol, b.n_islands)
     b.rest_volume = float(face_vol.sum())
     # The volume's rounding in the binding's precision: a few ulps of every face's term. An open

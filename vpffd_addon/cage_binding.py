@@ -88,7 +88,8 @@ class CageBinding(BindingBase):
         return det[self.slot]
 
 
-def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3, outside="FOLLOW"):
+def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3, outside="FOLLOW",
+              topology=None):
     """Bind a triangle mesh to `cage` refined `depth` times. See `vpffd_addon.bind`."""
     if not isinstance(cage, Cage):
         raise ValueError(f"bind_cage needs a vpffd_addon.Cage, got {type(cage).__name__}")
@@ -96,7 +97,7 @@ def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3,
     if mode not in OUTSIDE_MODES:
         raise ValueError(f"outside must be one of {OUTSIDE_MODES}, got {outside!r}")
     b = CageBinding()
-    verts, tris, s, labels, rel = prepare(b, cage, rest_verts, tris, influence, dtype)
+    verts, tris, s, labels, rel = prepare(b, cage, rest_verts, tris, influence, dtype, topology)
     V = b.n_verts
     b.depth, b.outside = int(depth), mode
     b.refinement = ref = cage.region(depth)

@@ -43,12 +43,17 @@ def is_closed(tris, n_verts):
         return False
     a = t.ravel()
     b = t[:, [1, 2, 0]].ravel()
+    # One sort of the undirected edges, each tagged with its direction in the lowest bit: a closed,
+    # consistently oriented surface has every edge exactly twice, once in each direction, so the
+    # sorted keys come in pairs (2e, 2e + 1) with e strictly increasing from pair to pair.
     n = np.int64(n_verts)
-    fwd = np.sort(a * n + b)
-    if (fwd[1:] == fwd[:-1]).any():
+    keys = np.sort((np.minimum(a, b) * n + np.maximum(a, b)) * 2 + (a > b))
+    if len(keys) % 2:
         return False
-    rev = np.sort(b * n + a)
-    return bool(np.array_equal(fwd, rev))
+    first, second = keys[0::2], keys[1::2]
+    if not ((first & 1) == 0).all() or not np.array_equal(second, first + 1):
+        return False
+    return bool((first[1:] > second[:-1]).all())
 
 
 def connected_components(tris, n_verts):
@@ -77,3 +82,39 @@ def connected_components(tris, n_verts):
         a, b = a[differ], b[differ]
     roots, labels = np.unique(parent, return_inverse=True)
     return labels.astype(np.int64), len(roots)
+
+
+class Topology:
+    """What a bind needs to know about a triangle mesh that does not depend on where its vertices
+    are: validated faces, closedness and islands. It is computed once and handed to every later
+    bind of the same faces (a mesh moving through a lattice re-embeds on every frame, but its
+    topology stays), which then only re-embeds the new positions.
+
+    tris: (F, 3) vertex indices; n_verts: number of vertices V.
+    Attributes: `tris` (F, 3) int64, `n_verts`, `is_closed`, `labels` (V,) island of each vertex,
+    `n_islands`, `face_island` (F,), and `island_order` (V,) / `island_start` (n_islands,): the
+    vertices grouped by island, for per-island reductions without scattered writes.
+    """
+
+    def __init__(self, tris, n_verts):
+        self.n_verts = int(n_verts)
+        self.tris = check_tris(tris, self.n_verts)
+        self.is_closed = is_closed(self.tris, self.n_verts)
+        self.labels, self.n_islands = connected_components(self.tris, self.n_verts)
+        self.face_island = self.labels[self.tris[:, 0]]
+        self.island_order = np.argsort(self.labels, kind="stable")
+        self.island_start = np.searchsorted(self.labels[self.island_order], np.arange(self.n_islands))
+
+    def island_bounds(self, verts):
+        """(lo, hi), each (n_islands, 3): the bounding box of every island of `verts` (V, 3)."""
+        if self.n_islands == 1:
+            cols = np.ascontiguousarray(verts.T)   # reductions along contiguous rows are faster
+            return cols.min(1)[None], cols.max(1)[None]
+        grouped = verts[self.island_order]
+        return (np.minimum.reduceat(grouped, self.island_start, axis=0),
+                np.maximum.reduceat(grouped, self.island_start, axis=0))
+
+    def matches(self, tris):
+        """True when `tris` are the faces this topology was made from (same array contents)."""
+        t = np.asarray(tris)
+        return t.shape == self.tris.shape and np.array_equal(t, self.tris)

@@ -1,0 +1,100 @@
+"""Re-embedding with a reused `Topology`: a mesh moving through the lattice re-binds on every
+frame, and what the faces alone determine is computed once. The result must not depend on that:
+a bind with a reused topology equals a bind from scratch, array for array, and the layout depends
+only on the bind's own arguments, never on an earlier binding."""
+import numpy as np
+import pytest
+
+import vpffd_addon as vp
+
+try:
+    from . import _meshes as M
+except ImportError:
+    import _meshes as M
+
+
+def _arrays(b):
+    out = {k: v for k, v in vars(b).items() if isinstance(v, np.ndarray)}
+    out.update({f"corner_part_{i}": c for i, c in enumerate(b.corner_parts)})
+    return out
+
+
+def _two_spheres():
+    v1, f1 = vp.icosphere(2, 0.3)
+    v2, f2 = vp.icosphere(1, 0.2)
+    return np.concatenate([v1 - (0.35, 0, 0), v2 + (0.4, 0.1, 0)]), np.concatenate([f1, f2 + len(v1)])
+
+
+@pytest.mark.parametrize("interp", ["BSPLINE", "LINEAR", "CARDINAL", "BEZIER"])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_reused_topology_gives_the_same_binding(interp, dtype):
+    v, f = _two_spheres()
+    lat = vp.Lattice((5, 4, 3), interp, bounds=((-0.7, -0.5, -0.4), (0.8, 0.5, 0.45)))
+    topo = vp.Topology(f, len(v))
+    rng = np.random.default_rng(3)
+    for shift in [(0, 0, 0), (0.31, -0.12, 0.05), (-0.9, 0.4, 0.3)]:   # the last one half outside
+        moved = v @ M.rotation(rng).T * 0.9 + shift
+        fresh = vp.bind(lat, moved, f, dtype=dtype)
+        reused = vp.bind(lat, moved, f, dtype=dtype, topology=topo)
+        a, b = _arrays(fresh), _arrays(reused)
+        assert a.keys() == b.keys()
+        for k in a:
+            assert np.array_equal(a[k], b[k]), k
+        assert fresh.rest_volume == reused.rest_volume
+        P = lat.rest_points + rng.normal(0, 0.05, (lat.n_points, 3))
+        s1, s2 = fresh.solve(P, axes="XYZ"), reused.solve(P, axes="XYZ")
+        assert np.array_equal(s1.verts, s2.verts)
+
+
+def test_layout_does_not_depend_on_the_previous_binding():
+    """Frame B bound after frame A equals frame B bound alone (chunked renders rely on it)."""
+    v, f = vp.icosphere(3, 0.5)
+    lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    topo = vp.Topology(f, len(v))
+    vp.bind(lat, v + 0.3, f, dtype=np.float32, topology=topo)
+    after = vp.bind(lat, v - 0.2, f, dtype=np.float32, topology=topo)
+    alone = vp.bind(lat, v - 0.2, f, dtype=np.float32, topology=vp.Topology(f, len(v)))
+    for k, arr in _arrays(alone).items():
+        assert np.array_equal(arr, _arrays(after)[k]), k
+
+
+def test_topology_of_other_faces_is_refused():
+    v, f = vp.icosphere(1, 0.5)
+    topo = vp.Topology(f, len(v))
+    lat = vp.Lattice((3, 3, 3))
+    with pytest.raises(ValueError, match="other faces"):
+        vp.bind(lat, v, f[::-1], topology=topo)
+    with pytest.raises(ValueError, match="Topology"):
+        vp.bind(lat, v, f, topology="not a topology")
+
+
+def test_island_bounds_match_a_loop():
+    v, f = _two_spheres()
+    topo = vp.Topology(f, len(v))
+    lo, hi = topo.island_bounds(v)
+    for k in range(topo.n_islands):
+        sel = v[topo.labels == k]
+        assert np.array_equal(lo[k], sel.min(0)) and np.array_equal(hi[k], sel.max(0))
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_is_closed_matches_the_definition(seed):
+    """Every edge used exactly twice, in opposite directions: checked against a dictionary count."""
+    rng = np.random.default_rng(seed)
+    v, f = vp.icosphere(1, 1.0)
+    f = f.copy()
+    kind = seed % 4
+    if kind == 1:
+        f = f[1:]                                   # a hole
+    elif kind == 2:
+        f[0] = f[0, ::-1]                           # one face flipped
+    elif kind == 3:
+        f = np.concatenate([f, f[:1]])              # a face used twice
+    f = f[rng.permutation(len(f))]
+    count = {}
+    for a, b, c in f:
+        for e in ((a, b), (b, c), (c, a)):
+            count[e] = count.get(e, 0) + 1
+    expected = all(n == 1 and count.get((e[1], e[0])) == 1 for e, n in count.items())
+    assert vp.mesh.is_closed(f, len(v)) == expected
+    assert expected == (kind == 0)

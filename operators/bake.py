@@ -1,10 +1,10 @@
 """Bake: the volume-preserved deformation of a frame range written to a point cache (PC2, or MDD)
 that Blender's own Mesh Cache modifier reads, and a switch between that cache and the live solve.
 
-A baked frame is the exact float32 sum the VP-FFD modifier computes, the mesh's own coordinates
-plus the offsets the engine writes (`meshio.read_offsets`), so the cache reproduces the live result
-bit for bit. `switch_to_cache` puts a Mesh Cache modifier where the VP-FFD modifier is in the stack
-and disables (does not delete) the VP-FFD modifier: a file saved that way renders on a machine
+A baked frame is what the VP-FFD slot gives on that frame (the positions that reach it plus the
+offsets the engine writes, `engine.slot_output`), so the cache reproduces the live result. Modifiers
+before VP-FFD are baked in. `switch_to_cache` puts a Mesh Cache modifier where the VP-FFD modifier
+is in the stack and disables (does not delete) the VP-FFD modifier: a file saved that way renders on a machine
 without the extension. `switch_to_live` goes back; the cache modifier stays, disabled, remembering
 its file for `switch_to_cache` again.
 
@@ -31,7 +31,7 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..vpffd_addon import pointcache
-from . import engine, meshio, modifier
+from . import engine, modifier
 
 CACHE_MODIFIER_NAME = "VP-FFD Cache"
 FORMATS = {"PC2": ".pc2", "MDD": ".mdd"}
@@ -170,21 +170,6 @@ def check_bakeable(obj, scene=None):
         raise BakeError("leave Edit Mode before baking")
     if scene is not None and scene.objects.get(obj.name) != obj:
         raise BakeError(f"'{obj.name}' is not in scene '{scene.name}'")
-    if obj.data.shape_keys is not None:
-        raise BakeError(f"mesh '{obj.data.name}' has shape keys, which VP-FFD does not follow: "
-                        "the cache would not match what the VP-FFD modifier shows")
-    if obj.parent is not None and obj.parent_type in {"ARMATURE", "LATTICE"}:
-        raise BakeError(f"'{obj.name}' is deformed by its parent ({obj.parent_type.title()} "
-                        "parenting) before the modifier stack: the cache would replace that")
-    for mod in obj.modifiers:
-        if mod == vp_mod:
-            break
-        if mod.name == CACHE_MODIFIER_NAME and mod.type == "MESH_CACHE":
-            continue
-        if mod.show_viewport or mod.show_render:
-            raise BakeError(f"modifier '{mod.name}' comes before VP-FFD in the stack, and the "
-                            "cache replaces what VP-FFD receives: move VP-FFD to the top, or "
-                            f"disable '{mod.name}'")
     return vp_mod
 
 
@@ -237,10 +222,12 @@ def switch_to_cache(obj, filepath, fmt="PC2", frame_start=None, scene=None):
         raise BakeError(str(exc)) from None
     except OSError as exc:
         raise BakeError(f"cannot read {path}: {_why(exc)}") from None
-    n = len(obj.data.vertices)
+    # The cache replaces what reaches the VP-FFD slot: its point count is the slot's.
+    live = engine.slot_output(obj)
+    n = len(obj.data.vertices) if live is None else len(live)
     if info["points"] != n:
-        raise BakeError(f"{path} holds {info['points']} points but mesh '{obj.data.name}' has {n} "
-                        "vertices: bake again")
+        raise BakeError(f"{path} holds {info['points']} points but {n} reach the VP-FFD modifier "
+                        f"of '{obj.name}': bake again")
     if frame_start is None:
         if fmt == "PC2":
             frame_start = info["start_frame"]
@@ -338,7 +325,6 @@ class Baker:
         check_bakeable(obj, scene)
         _prepare_folder(self.path, self.make_folder)
         self._t0 = time.perf_counter()
-        self.rest = meshio.mesh_coords(obj.data, np.float32)
         cache = find_cache(obj)
         self._saved = (scene.frame_current, scene.frame_subframe,
                        (self.vp_mod.show_viewport, self.vp_mod.show_render),
@@ -346,7 +332,14 @@ class Baker:
         self.vp_mod.show_viewport = True
         if cache is not None:
             cache.show_viewport = False
-        n = len(self.rest)
+        # The cache holds what the VP-FFD slot gives, so its point count is the slot's.
+        self.scene.frame_set(self.frame_start)
+        engine.update(obj, self._depsgraph(), force=True)
+        first = engine.slot_output(obj)
+        if engine.stats(obj).get("error") or first is None:
+            self._restore()
+            raise BakeError(f"frame {self.frame_start}: {engine.stats(obj).get('error') or 'no result'}")
+        n = self.n_points = len(first)
         try:
             if self.fmt == "PC2":
                 self._writer = pointcache.PC2Writer(self.path, n, self.total, self.frame_start, 1.0)
@@ -383,7 +376,10 @@ class Baker:
         error = engine.stats(self.obj).get("error")
         if error:
             raise BakeError(f"frame {f}: {error}")
-        coords = self.rest + meshio.read_offsets(self.obj.data).astype(np.float32)
+        coords = engine.slot_output(self.obj)
+        if coords is None or len(coords) != self.n_points:
+            raise BakeError(f"frame {f}: the number of points reaching VP-FFD changed "
+                            f"({self.n_points} at the first frame)")
         try:
             self._writer.write_frame(coords)
         except ValueError as exc:
@@ -401,7 +397,7 @@ class Baker:
             self._restore()
             raise BakeError(f"cannot write {self.path}: {_why(exc)}") from None
         self._restore()
-        return BakeResult(path, self.fmt, self.frame_start, self.frame_end, len(self.rest),
+        return BakeResult(path, self.fmt, self.frame_start, self.frame_end, self.n_points,
                           time.perf_counter() - self._t0)
 
     def abort(self):

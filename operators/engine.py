@@ -1,19 +1,20 @@
-"""Runtime of bound objects: bind, per-frame solve, offsets written for the VP-FFD modifier.
+"""Runtime of bound objects: the thin layer between Blender and `vpffd_addon.Pipeline`.
 
-Everything a bound object needs survives in the .blend: the settings (`obj.vpffd`), the mesh's own
-coordinates (never written), the per-vertex weights and pins (mesh attributes written at bind), the
-VP-FFD modifier. The NumPy binding is a cache rebuilt on demand, e.g. after loading a file, or when
-the mesh moves relative to the lattice (as Blender's Lattice modifier re-embeds every evaluation).
+Every update reads what reached the VP-FFD slot (the modifier's tap), the evaluated lattice and the
+settings, hands them to the pipeline, and writes the resulting offsets into the modifier's solver
+helper; Blender then evaluates the object again with them (docs/stack.md). Everything a bound
+object needs survives in the .blend: the settings (`obj.vpffd`), the mesh's own coordinates (never
+written), the pins (a mesh attribute written at Bind), the VP-FFD modifier and its helper. The
+pipeline's caches are rebuilt on demand, e.g. after loading a file.
 """
 import time
 
-import bpy
 import numpy as np
 
 from .. import vpffd_addon as vp
 from . import cage, gpu_backend, meshio, modifier
 
-WEIGHT_ATTRIBUTE = "vpffd_weight"   # vertex-group weight at bind time (1 without a group)
+LEGACY_ATTRIBUTES = ("vpffd_offset", "vpffd_weight")  # written by earlier versions
 PIN_ATTRIBUTE = "vpffd_pin"         # 1 for pinned vertices
 JACOBIAN_ATTRIBUTE = "vpffd_jacobian"  # det of the deformation's Jacobian (on request)
 CAGE_REST_PROPERTY = "vpffd_cage_rest"  # the cage's points at bind time, flat, in cage space
@@ -58,6 +59,14 @@ def forget(obj=None):
             table.pop(obj.session_uid, None)
 
 
+def invalidate():
+    """Make the next update of every object solve again (after undo, redo): the solves' inputs
+    may be restored to other values, the helpers to other offsets. Caches stay."""
+    for state in _cache.values():
+        state.signature = None
+        state.written = None
+
+
 def _float_attribute(mesh, name, values=None):
     """Write (V,) float point attribute `name`, or read it (None when missing)."""
     attr = mesh.attributes.get(name)
@@ -73,15 +82,6 @@ def _float_attribute(mesh, name, values=None):
     attr = mesh.attributes.new(name, "FLOAT", "POINT")
     attr.data.foreach_set("value", data)
     return attr
-
-
-def _lattice_model(lattice_data):
-    """(vp.Lattice, rest grid (N, 3)) for a Blender Lattice datablock; bounds come from `co`."""
-    grid = meshio.lattice_points(lattice_data, "co")
-    shape = (lattice_data.points_u, lattice_data.points_v, lattice_data.points_w)
-    interp = (lattice_data.interpolation_type_u, lattice_data.interpolation_type_v,
-              lattice_data.interpolation_type_w)
-    return vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0))), grid
 
 
 def _is_control(ob):
@@ -130,49 +130,56 @@ def _cage_model(state, obj, cage_ob):
 
 
 class _Bound:
-    """Cached per-object state: rest mesh, weights, pins and the NumPy binding."""
+    """Cached per-object state: the frame pipeline (topology and binding caches), the faces of
+    the slot's input, the last solve's signature, result and overlay. Nothing in it is needed for
+    a frame's result to be right: it only saves work (docs/stack.md)."""
 
-    def __init__(self, obj):
-        mesh = obj.data
-        self.rest32 = meshio.mesh_coords(mesh, np.float32)
-        self.rest = self.rest32.astype(np.float64)
-        self.tris = meshio.mesh_triangles(mesh)
-        weight = _float_attribute(mesh, WEIGHT_ATTRIBUTE)
-        self.weight = np.ones(len(self.rest)) if weight is None else weight
-        pins = _float_attribute(mesh, PIN_ATTRIBUTE)
-        self.pins = np.zeros(0, np.int64) if pins is None else np.flatnonzero(pins > 0)
-        self.binding = None
-        self.key = None
+    def __init__(self):
+        self.pipeline = vp.Pipeline(solver=self._solve)
+        self.faces = self.faces_key = None
         self.signature = None
+        self.result = None
+        self.input = None       # (V, 3) float32 slot input of the last solve (object space)
+        self.output = None      # (V, 3) float32 slot output of the last solve
+        self.written = None     # offsets last written to the solver helper
         self.overlay = None
-        self.gpu = None        # GPUSolver for the current binding, made on first GPU use
+        self.gpu = None         # GPUSolver for the current binding, made on first GPU use
+        self.gpu_binding = None
+        self.backend = ("CPU", "")
+        self.settings = None
         self.cage_model = self.cage_key = None
+
+    @property
+    def binding(self):
+        return self.pipeline.binding
+
+    @property
+    def points(self):
+        return None if self.result is None else self.result.points
 
     def free(self):
         if self.gpu is not None:
             self.gpu.free()
-            self.gpu = None
+            self.gpu = self.gpu_binding = None
 
-    def edited(self, mesh):
-        """True when the mesh's own coordinates differ from those this state was built from."""
-        return not np.array_equal(meshio.mesh_coords(mesh, np.float32), self.rest32)
-
-    def binding_for(self, lattice, model_key, grid, L, influence, cage_options=None):
-        """The binding for this lattice or cage, mesh-to-lattice matrix and influence (rebuilt on
-        change). cage_options: (depth, outside) for a cage."""
-        key = (model_key, cage_options, grid.tobytes(), L.round(12).tobytes(), influence.tobytes())
-        if key != self.key:
-            verts = meshio.transform(self.rest, L)
-            self.free()
-            extra = {} if cage_options is None else dict(depth=cage_options[0], outside=cage_options[1])
-            self.binding = vp.bind(lattice, verts, self.tris, influence=influence, dtype=np.float32, **extra)
-            self.key, self.L = key, L
-        return self.binding
-
-
-def _influence(s, state):
-    w = state.weight
-    return 1.0 - w if (s.invert_vertex_group and s.vertex_group) else w
+    def _solve(self, binding, P, options):
+        """The pipeline's solver: the GPU path when the settings' backend and the machine allow
+        it, else (or when it fails) the CPU path."""
+        s = self.settings
+        use_gpu, why = gpu_backend.choose(s.backend, binding.n_verts, options, binding)
+        if use_gpu:
+            try:
+                if self.gpu is None or self.gpu_binding is not binding:
+                    self.free()
+                    self.gpu, self.gpu_binding = gpu_backend.GPUSolver(binding), binding
+                sol = self.gpu.solve(P, axes=options["axes"], volume_scale=options["volume_scale"])
+                self.backend = ("GPU", why)
+                return sol
+            except gpu_backend.GPUUnavailable as exc:
+                self.free()
+                why = f"the GPU failed, using the CPU: {exc}"
+        self.backend = ("CPU", why)
+        return binding.solve(P, **options)
 
 
 def _directions(s, lat_matrix):
@@ -188,9 +195,18 @@ def _directions(s, lat_matrix):
     return "", world @ inv3.T
 
 
-def _pin_targets(s, state, lat_matrix):
-    """[(vertex, target in lattice space)] for the pinned vertices, following the pin Empty."""
-    if s.pin_mode == "NONE" or len(state.pins) == 0:
+def _pins(s, obj):
+    """(V,) indices of the pinned vertices of the mesh (written at Bind)."""
+    if s.pin_mode == "NONE":
+        return np.zeros(0, np.int64)
+    pins = _float_attribute(obj.data, PIN_ATTRIBUTE)
+    return np.zeros(0, np.int64) if pins is None else np.flatnonzero(pins > 0)
+
+
+def _pin_targets(s, pins, X, lat_matrix, ob_matrix):
+    """[(vertex, target in lattice space)] for the pinned vertices, following the pin Empty: the
+    Empty's motion since Bind carries each pinned vertex from where it reaches the slot."""
+    if len(pins) == 0:
         return []
     if s.pin_target is None:
         raise ValueError("pins need a target Empty (Pin Target)")
@@ -198,26 +214,117 @@ def _pin_targets(s, state, lat_matrix):
     M_t0 = np.array(s.pin_target_rest).reshape(4, 4)
     M_mesh0 = np.array(s.pin_mesh_rest).reshape(4, 4)
     carry = np.linalg.inv(lat_matrix) @ M_t @ np.linalg.inv(M_t0) @ M_mesh0
-    targets = meshio.transform(state.rest[state.pins], carry)
-    return list(zip(state.pins.tolist(), targets))
+    targets = meshio.transform(X[pins].astype(np.float64), carry)
+    return list(zip(pins.tolist(), targets))
+
+
+# Lattice data read in Object Mode. In a lattice's Edit Mode, `LatticePoint.co` holds garbage and
+# `LatticePoint.groups` reads out of bounds (it can crash Blender): there, the rest grid and the
+# group weights come from the last Object Mode read (or from Bind), never from the points.
+_lattice_reads = {}   # lattice data session_uid -> {"grid": (N, 3), "groups": {name: (N,)}}
+
+
+def _lattice_entry(lat_ob):
+    return _lattice_reads.setdefault(lat_ob.data.session_uid, {"grid": None, "groups": {}})
+
+
+def _lattice_rest(lat_ob, s):
+    """(vp.Lattice, rest grid (N, 3)) of a Lattice object; safe in the lattice's Edit Mode."""
+    data = lat_ob.data
+    shape = (data.points_u, data.points_v, data.points_w)
+    interp = (data.interpolation_type_u, data.interpolation_type_v, data.interpolation_type_w)
+    entry = _lattice_entry(lat_ob)
+    if not data.is_editmode:
+        grid = meshio.lattice_points(data, "co")
+        entry["grid"] = grid
+        lattice = vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0)))
+        return lattice, grid
+    grid = entry["grid"]
+    if grid is not None and len(grid) == len(data.points):
+        return vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0))), grid
+    lo, hi = np.array(s.lattice_rest_lo), np.array(s.lattice_rest_hi)
+    lattice = vp.Lattice(shape, interp, bounds=(lo, hi))   # the bounds saved at Bind
+    return lattice, lattice.rest_points
+
+
+def _lattice_group(lat_ob, name):
+    """(N,) weights of vertex group `name` of the lattice or cage, or raise ValueError. Read in
+    Object Mode only (see `_lattice_reads`)."""
+    if lat_ob.type != "LATTICE":
+        return meshio.lattice_group_weights(lat_ob, name)
+    entry = _lattice_entry(lat_ob)
+    if not lat_ob.data.is_editmode:
+        weights = meshio.lattice_group_weights(lat_ob, name)
+        entry["groups"][name] = weights
+        return weights
+    weights = entry["groups"].get(name)
+    if weights is None or len(weights) != len(lat_ob.data.points):
+        raise ValueError(f"the weights of vertex group '{name}' are read in Object Mode: leave the "
+                         "lattice's Edit Mode once")
+    return weights
+
+
+def _lattice_weights(lat_ob):
+    """(N,) weights of the lattice's own vertex group (Lattice > Vertex Group), or None."""
+    if lat_ob.type != "LATTICE" or not lat_ob.data.vertex_group:
+        return None
+    if lat_ob.vertex_groups.get(lat_ob.data.vertex_group) is None:
+        return None              # a name the lattice lacks: Blender's modifier ignores it too
+    return _lattice_group(lat_ob, lat_ob.data.vertex_group)
 
 
 def _mobility(s, lattice_object):
     """(N,) mobility from a vertex group of the lattice or cage, or None."""
     if not s.mobility_group:
         return None
-    return meshio.lattice_group_weights(lattice_object, s.mobility_group)
+    return _lattice_group(lattice_object, s.mobility_group)
 
 
-def _zero_offsets(obj):
+def _faces(state, obj, ob_eval, n):
+    """(F, 3) triangles of the `n` positions that reach the slot, or None when they are unknown.
+
+    Deform-only modifiers before the slot keep the mesh's own topology (same vertex count); when
+    modifiers before it change the count, the faces are those of the evaluated mesh at the end of
+    the stack, provided that nothing after the slot changed the count again."""
     mesh = obj.data
-    if mesh.attributes.get(meshio.OFFSET_ATTRIBUTE) is not None:
-        meshio.write_offsets(mesh, np.zeros((len(mesh.vertices), 3)))
+    if n == len(mesh.vertices):
+        source, key = mesh, ("mesh", meshio.topology_signature(mesh))
+    else:
+        final = ob_eval.data
+        if final is None or len(final.vertices) != n:
+            return None, None
+        source, key = final, ("final", meshio.topology_signature(final))
+    if state.faces_key != key:
+        state.faces, state.faces_key = meshio.mesh_triangles(source), key
+    return state.faces, key[0]
+
+
+def _zero_offsets(obj, state=None):
+    """Show the slot's input undeformed (a defined result for a frame that cannot be solved)."""
+    mod = modifier.find(obj)
+    helper = modifier.get_input(mod, modifier.SOLVER_INPUT) if mod is not None else None
+    if helper is None or helper.get(modifier.HELPER_TAG) is None:
+        return
+    if len(helper.data.vertices):
+        modifier.write_offsets(helper, np.zeros((0, 3), np.float32))
+    if state is not None:
+        state.written = None
+
+
+def _write(state, helper, offsets):
+    """Write offsets to the helper unless it already holds exactly these (every write makes
+    Blender evaluate the object again, and the handler runs again after it)."""
+    values = meshio.float32_or_raise(offsets, "the offsets")
+    if state.written is not None and np.array_equal(state.written, values) \
+            and len(helper.data.vertices) == len(values):
+        return
+    modifier.write_offsets(helper, values)
+    state.written = values
 
 
 def update(obj, depsgraph, force=False):
     """Solve the current frame for a bound object and write its offsets. Never raises: problems
-    go to the panel (`stats(obj)['error']`) and the console. Returns True when offsets were written.
+    go to the panel (`stats(obj)['error']`) and the console. Returns True when a solve ran.
     `force` solves even when the inputs did not change and the modifier is switched off (Bind,
     Apply, Check Folds and Bake need the solve)."""
     # Overflow is detected on the results and reported in words; NumPy's own warnings would only
@@ -226,9 +333,10 @@ def update(obj, depsgraph, force=False):
         return _update(obj, depsgraph, force)
 
 
-def _update(obj, depsgraph, force):
+def _update(obj, depsgraph, force, helpers_taken=None):
     s = obj.vpffd
     uid = obj.session_uid
+    state = None
     try:
         if not s.is_bound:
             return False
@@ -245,125 +353,132 @@ def _update(obj, depsgraph, force):
                 if state is not None:
                     state.signature = None
             return False  # switched off for this evaluation, like any modifier
-        if obj.data.users > 1:
-            _set_stats(obj, error=f"mesh '{obj.data.name}' is shared by {obj.data.users} objects "
-                                  "(a linked duplicate?): make it single user, then Re-bind")
-            return False
         if obj.mode == "EDIT":
             _set_stats(obj, **{**stats(obj), "error": "paused while the mesh is in Edit Mode"})
             state = _cache.get(uid)
             if state is not None:
                 state.signature = None   # leaving Edit Mode solves again, which clears the message
             return False
-        mesh = obj.data
-        if meshio.topology_signature(mesh) != tuple(s.bound_topology):
-            _zero_offsets(obj)
-            _cache.pop(uid, None)
-            _set_stats(obj, error="the mesh's topology changed since binding: Re-bind")
-            return False
+        state = _cache.get(uid)
+        if state is None:
+            state = _cache[uid] = _Bound()
+        if depsgraph.mode != "RENDER":
+            modifier.sync_inputs(obj, mod)
+            helper = modifier.helper(obj, mod, exclusive_of=helpers_taken or ())
+        else:
+            helper = modifier.get_input(mod, modifier.SOLVER_INPUT)
+        if helper is None:
+            raise ValueError("the VP-FFD modifier has no solver helper: Re-bind")
+        if helpers_taken is not None:
+            helpers_taken.add(helper)
         lat_ob = s.lattice
         if not _is_control(lat_ob):
-            _zero_offsets(obj)
+            _zero_offsets(obj, state)
             _set_stats(obj, error=_missing_control(lat_ob))
             return False
 
-        lat_eval = lat_ob.evaluated_get(depsgraph)
         ob_eval = obj.evaluated_get(depsgraph)
+        tap = modifier.read_tap(ob_eval, depsgraph)
+        if tap is None:
+            if not force:
+                _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
+                                      "Geometry Nodes modifier after it drops point clouds?)")
+            return False
+        X, weights = tap
         # Animated settings (volume scale, strength, ...) have this evaluation's values on the
         # evaluated object only: a render's depsgraph does not write them back to the original.
         s = ob_eval.vpffd
-        state = _cache.get(uid)
-        if state is None or state.edited(mesh):
-            # First use (e.g. after loading), or the vertices were moved in Edit Mode: embed the
-            # mesh's coordinates as they are now, as the Lattice modifier would.
-            state = _cache[uid] = _Bound(obj)
+        state.settings = s
+        lat_eval = lat_ob.evaluated_get(depsgraph)
         cage_options = None
         if lat_ob.type == "LATTICE":
-            lattice, grid = _lattice_model(lat_eval.data)
+            lattice, grid = _lattice_rest(lat_ob, s)
             points = meshio.lattice_points(lat_eval.data, "co_deform")
-            model_key = (lattice.shape, lattice.interpolation)
+            lattice_weights = _lattice_weights(lat_ob)
         else:
-            lattice, grid, model_key = _cage_model(state, obj, lat_ob)
+            lattice, grid, _ = _cage_model(state, obj, lat_ob)
             points = _cage_points(lat_eval, lattice.n_points)
             cage_options = (s.cage_depth, s.cage_outside)
+            lattice_weights = None
+        if len(points) != lattice.n_points:
+            raise ValueError(f"lattice '{lat_ob.name}' has {len(points)} points, expected {lattice.n_points}")
         M_lat = meshio.matrix(lat_eval.matrix_world)
-        L = np.linalg.inv(M_lat) @ meshio.matrix(ob_eval.matrix_world)
+        M_ob = meshio.matrix(ob_eval.matrix_world)
+        L = np.linalg.inv(M_lat) @ M_ob
         axes, directions = _directions(s, M_lat)
-        influence = _influence(s, state)
-        pins = _pin_targets(s, state, M_lat)
+        tris, faces_from = _faces(state, obj, ob_eval, len(X))
+        warnings = []
+        pins = _pins(s, obj)
+        if len(pins) and faces_from != "mesh":
+            warnings.append("pins are off: the modifiers before VP-FFD change the vertex count")
+            pins = pins[:0]
+        pin_targets = _pin_targets(s, pins, X, M_lat, M_ob)
         mobility = _mobility(s, lat_ob)
-        signature = (points.tobytes(), L.tobytes(), grid.tobytes(), model_key, cage_options, axes, s.space,
-                     s.strength, s.volume_scale, s.use_islands, influence.tobytes(), repr(pins),
-                     s.use_fold_attribute, None if mobility is None else mobility.tobytes())
-        if not force and signature == state.signature:
+        correct = bool(axes or directions is not None or pin_targets)
+        if tris is None and correct:
+            warnings.append("the volume is not corrected: the modifiers before VP-FFD change the "
+                            "vertex count and those after it change it again, so the faces at its "
+                            "slot are unknown")
+            correct = False
+        settings = (axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
+                    s.use_fold_attribute, cage_options, faces_from, type(lattice).__name__,
+                    getattr(lattice, "shape", None), getattr(lattice, "interpolation", None))
+        arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions)
+        signature = (settings, arrays)
+        if not force and state.signature is not None and state.signature[0] == settings and all(
+                (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+                for a, b in zip(state.signature[1], arrays)):
             return False
 
         t0 = time.perf_counter()
-        binding = state.binding_for(lattice, model_key, grid, L, influence, cage_options)
-        t_core = time.perf_counter()
-        # Strength scales every displacement alike, so it scales the lattice offsets instead of
-        # the binding's weights (no re-bind when it is animated).
-        P = grid + s.strength * (points - grid)
-        backend = "CPU"
-        backend_reason = ""
-        if axes or directions is not None or pins:
-            options = dict(axes=axes, directions=directions, pins=pins, mobility=mobility,
-                           islands=s.use_islands, preserve_volume=bool(axes or directions is not None))
-            sol, backend, backend_reason = _solve(state, binding, P, s, options)
-            verts, volume, plain, warnings = sol.verts, sol.volume, sol.plain_volume, list(sol.warnings)
-            used_points = sol.points
-        else:
-            # No correction: the plain deformation, its volume measured as the solver measures
-            # (a closed mesh's islands about their own centres, not about the lattice centre).
-            sol = binding.solve(P, axes="", preserve_volume=False)
-            verts, volume, plain, warnings = sol.verts, sol.volume, sol.plain_volume, []
-            used_points = P
-        core_seconds = time.perf_counter() - t_core
-        offsets = meshio.transform(verts, np.linalg.inv(L)) - state.rest
+        inputs = vp.FrameInputs(
+            positions=X, tris=tris, lattice=lattice, points=points, matrix=L, weights=weights,
+            lattice_weights=lattice_weights, strength=s.strength, correct=correct, axes=axes,
+            directions=directions, volume_scale=s.volume_scale, mobility=mobility, pins=pin_targets,
+            islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
+            dtype=np.float32)
+        state.backend = ("CPU", "")
+        result = state.pipeline.evaluate(inputs)
+        core_seconds = time.perf_counter() - t0
+        offsets = result.positions - X
         if not np.isfinite(offsets).all():
             raise ValueError("the solve produced non-finite offsets; nothing was written")
-        meshio.write_offsets(mesh, offsets)
+        _write(state, helper, offsets)
         seconds = time.perf_counter() - t0
-        state.signature, state.points = signature, used_points
+        state.signature, state.result = signature, result
+        state.input = X
+        state.output = (X + offsets).astype(np.float32)
         edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
-        state.overlay = (meshio.transform(used_points, M_lat), edges)
+        state.overlay = (meshio.transform(result.points, M_lat), edges)
 
-        rest_volume = binding.rest_volume
-        info = dict(error=None, seconds=seconds, core_seconds=core_seconds, warnings=warnings,
-                    rest_volume=rest_volume, backend=backend, backend_reason=backend_reason,
-                    closed=binding.is_closed, n_verts=binding.n_verts, folds=None)
-        if rest_volume:
-            info["volume_percent"] = 100.0 * volume / rest_volume
-            info["plain_percent"] = 100.0 * plain / rest_volume
-        if s.use_fold_attribute:
-            det = vp.jacobian_det(binding, used_points)
-            _float_attribute(mesh, JACOBIAN_ATTRIBUTE, det)
-            info["folds"] = int((det <= 0).sum())
-        elif binding.n_verts <= FOLD_CHECK_MAX_VERTS:
-            info["folds"] = count_folds(binding, used_points)
+        binding = result.binding
+        backend, backend_reason = state.backend
+        info = dict(error=None, seconds=seconds, core_seconds=core_seconds,
+                    warnings=warnings + list(result.warnings), backend=backend,
+                    backend_reason=backend_reason, n_verts=len(X), folds=None,
+                    closed=None if binding is None else binding.is_closed,
+                    input_volume=result.input_volume, rebound=result.rebound)
+        if result.input_volume:
+            info["volume_percent"] = 100.0 * result.volume / result.input_volume
+            info["plain_percent"] = 100.0 * result.plain_volume / result.input_volume
+        if binding is not None:
+            if s.use_fold_attribute and faces_from == "mesh":
+                det = vp.jacobian_det(binding, result.points)
+                _float_attribute(obj.data, JACOBIAN_ATTRIBUTE, det)
+                info["folds"] = int((det <= 0).sum())
+            elif binding.n_verts <= FOLD_CHECK_MAX_VERTS:
+                info["folds"] = count_folds(binding, result.points)
         _set_stats(obj, **info)
         return True
     except Exception as exc:  # a handler must never raise into Blender
+        try:
+            _zero_offsets(obj, state)   # a defined result: the slot's input, undeformed
+        except Exception:
+            pass
+        if state is not None:
+            state.signature = None
         _set_stats(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
         return False
-
-
-def _solve(state, binding, P, s, options):
-    """(Solution, "GPU" or "CPU", why) for this frame: the GPU path when the settings' backend
-    and the machine allow it, else (or when it fails) the CPU path."""
-    use_gpu, why = gpu_backend.choose(s.backend, binding.n_verts, options, binding)
-    if use_gpu:
-        try:
-            if state.gpu is None:
-                state.gpu = gpu_backend.GPUSolver(binding)
-            return state.gpu.solve(P, axes=options["axes"], volume_scale=s.volume_scale), "GPU", why
-        except gpu_backend.GPUUnavailable as exc:
-            state.free()
-            why = f"the GPU failed, using the CPU: {exc}"
-    sol = binding.solve(P, axes=options["axes"], directions=options["directions"],
-                        volume_scale=s.volume_scale, preserve_volume=options["preserve_volume"],
-                        mobility=options["mobility"], pins=options["pins"], islands=options["islands"])
-    return sol, "CPU", why
 
 
 def _lattice_edges(shape):
@@ -395,9 +510,11 @@ def check_folds(obj, depsgraph):
     """Solve the current frame and count folds whatever the mesh size; None on error."""
     if not update(obj, depsgraph, force=True) and stats(obj).get("error"):
         return None
-    state = _cache[obj.session_uid]
+    state = _cache.get(obj.session_uid)
+    if state is None or state.result is None or state.result.binding is None:
+        return None
     info = stats(obj)
-    info["folds"] = count_folds(state.binding, state.points)
+    info["folds"] = count_folds(state.result.binding, state.result.points)
     return info["folds"]
 
 
@@ -406,13 +523,21 @@ def count_folds(binding, points):
     return int((vp.jacobian_det(binding, points) <= 0).sum())
 
 
+def slot_output(obj):
+    """(V, 3) float32 positions the VP-FFD slot gave in the last solve (object space), or None."""
+    state = _cache.get(obj.session_uid)
+    return None if state is None else state.output
+
+
 def bound_objects(scene):
     return [ob for ob in scene.objects if ob.type == "MESH" and ob.vpffd.is_bound]
 
 
 def update_scene(scene, depsgraph):
+    taken = set()   # each object's modifier gets a solver helper of its own (duplicates share one)
     for ob in bound_objects(scene):
-        update(ob, depsgraph)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            _update(ob, depsgraph, False, taken)
 
 
 def request_update(obj):
@@ -433,9 +558,8 @@ def check_bindable(obj):
     if not _is_control(s.lattice):
         raise BindError("pick a Lattice object or a VP-FFD cage first" if s.lattice is None
                         else _missing_control(s.lattice))
-    if obj.data.users > 1:
-        raise BindError(f"mesh '{obj.data.name}' is shared by {obj.data.users} objects (linked "
-                        "duplicates); make it single user (Object > Relations > Make Single User)")
+    if s.lattice.type == "LATTICE" and s.lattice.data.is_editmode:
+        raise BindError(f"leave the Edit Mode of lattice '{s.lattice.name}' before binding")
     if len(obj.data.polygons) == 0:
         raise BindError(f"mesh '{obj.data.name}' has no faces: there is no volume to keep")
 
@@ -446,8 +570,6 @@ def bind(obj, depsgraph):
     s = obj.vpffd
     mesh = obj.data
     # Everything is read and checked before anything is written: a refused Bind changes nothing.
-    weight = (meshio.vertex_group_weights(obj, s.vertex_group) if s.vertex_group
-              else np.ones(len(mesh.vertices)))
     pins = np.zeros(len(mesh.vertices))
     if s.pin_mode == "VERTEX":
         if s.pin_vertex >= len(mesh.vertices):
@@ -467,13 +589,19 @@ def bind(obj, depsgraph):
             vp.Cage(cage_rest, cells)
         except ValueError as exc:
             raise BindError(f"cage '{s.lattice.name}': {exc}") from None
+    else:
+        grid = meshio.lattice_points(s.lattice.data, "co")
+        s.lattice_rest_lo, s.lattice_rest_hi = grid.min(0).tolist(), grid.max(0).tolist()
     if s.pin_mode != "NONE":
         if s.pin_target is None:
             raise BindError("pins need a target Empty (Pin Target)")
         s.pin_target_rest = np.asarray(s.pin_target.matrix_world, dtype=float).ravel().tolist()
         s.pin_mesh_rest = np.asarray(obj.matrix_world, dtype=float).ravel().tolist()
-    _float_attribute(mesh, WEIGHT_ATTRIBUTE, weight)
-    _float_attribute(mesh, PIN_ATTRIBUTE, pins)
+    _remove_attribute(mesh, PIN_ATTRIBUTE)
+    if pins.any():
+        _float_attribute(mesh, PIN_ATTRIBUTE, pins)
+    for legacy in LEGACY_ATTRIBUTES:
+        _remove_attribute(mesh, legacy)
     if cage_rest is not None:
         mesh[CAGE_REST_PROPERTY] = cage_rest.ravel().tolist()
     elif CAGE_REST_PROPERTY in mesh:
@@ -482,9 +610,7 @@ def bind(obj, depsgraph):
     s.bound_topology = meshio.topology_signature(mesh)
     s.is_bound = True
     modifier.ensure(obj)
-    modifier.set_lattice(obj, s.lattice)
     forget(obj)
-    state = _cache[obj.session_uid] = _Bound(obj)
     depsgraph.update()
     update(obj, depsgraph, force=True)
     info = stats(obj)
@@ -493,15 +619,16 @@ def bind(obj, depsgraph):
         raise BindError(info["error"])
 
     warnings = []
-    b = state.binding
-    if not b.is_closed:
+    state = _cache[obj.session_uid]
+    b = state.result.binding if state.result is not None else None
+    if b is not None and not b.is_closed:
         warnings.append("the mesh is not closed: the volume of an open surface is measured about "
                         "the lattice centre")
-    if isinstance(b.lattice, vp.Cage):
+    if b is not None and isinstance(b.lattice, vp.Cage):
         if b.n_outside:
             what = "they follow its boundary" if b.outside == "FOLLOW" else "they stay where they are"
             warnings.append(f"{b.n_outside} of {b.n_verts} vertices lie outside the cage's region ({what})")
-    else:
+    elif b is not None:
         inside = _inside_count(state, b.lattice)
         if inside < b.n_verts:
             warnings.append(f"{b.n_verts - inside} of {b.n_verts} vertices lie outside the lattice "
@@ -510,31 +637,35 @@ def bind(obj, depsgraph):
             warnings.append("the lattice has a single point on an axis: it only moves along that axis")
     if info.get("folds"):
         warnings.append(f"the lattice folds space: {info['folds']} vertices inverted")
+    warnings.extend(info.get("warnings", ()))
     return warnings
 
 
 def _inside_count(state, lattice):
-    v = meshio.transform(state.rest, state.L)
+    v = state.result.binding._to_verts(state.result.binding.x0)
     eps = 1e-6 * lattice.size
     spans = np.array(lattice.shape) > 1  # a one-point axis has no extent to be outside of
     inside = (v >= lattice.lo - eps) & (v <= lattice.hi + eps)
     return int(inside[:, spans].all(1).sum())
 
 
+def _remove_attribute(mesh, name):
+    attr = mesh.attributes.get(name)
+    if attr is not None:
+        mesh.attributes.remove(attr)
+
+
 def unbind(obj):
-    """Remove the VP-FFD modifier (and a baked cache's Mesh Cache modifier) and the attributes;
-    the mesh's coordinates were never changed."""
+    """Remove the VP-FFD modifier (with its solver helper; and a baked cache's Mesh Cache
+    modifier) and the attributes; the mesh's coordinates were never changed."""
     from .bake import find_cache
     mesh = obj.data
     modifier.remove(obj)
     cache = find_cache(obj)
     if cache is not None:
         obj.modifiers.remove(cache)
-    meshio.remove_offsets(mesh)
-    for name in (WEIGHT_ATTRIBUTE, PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE):
-        attr = mesh.attributes.get(name)
-        if attr is not None:
-            mesh.attributes.remove(attr)
+    for name in (PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE) + LEGACY_ATTRIBUTES:
+        _remove_attribute(mesh, name)
     if CAGE_REST_PROPERTY in mesh:
         del mesh[CAGE_REST_PROPERTY]
     obj.vpffd.is_bound = False
@@ -543,18 +674,32 @@ def unbind(obj):
 
 
 def apply(obj, depsgraph):
-    """Make the current deformed shape the mesh's own coordinates, then unbind."""
+    """Make the current deformed shape the mesh's own coordinates, then unbind. Only where the
+    slot's input is the mesh's own coordinates: VP-FFD first among the enabled modifiers, and no
+    shape keys."""
     mesh = obj.data
     if mesh.shape_keys is not None:
         raise BindError("the mesh has shape keys: applying would only change the basis shape")
     mod = modifier.find(obj)
     if mod is not None and not mod.show_viewport:
         raise BindError("the VP-FFD modifier is switched off: switch it on to apply, or Unbind")
+    before = []
+    for m in obj.modifiers:
+        if m == mod:
+            break
+        if m.show_viewport:
+            before.append(m.name)
+    if before:
+        raise BindError(f"modifiers before VP-FFD ({', '.join(before)}) would be applied with it: "
+                        "apply them first, or move VP-FFD to the top")
     update(obj, depsgraph, force=True)
     info = stats(obj)
     if info.get("error"):
         raise BindError(info["error"])
-    co = meshio.mesh_coords(mesh) + meshio.read_offsets(mesh)
+    co = slot_output(obj)
+    if co is None or len(co) != len(mesh.vertices):
+        raise BindError("the VP-FFD result does not match the mesh's vertices: Re-bind")
+    co = co.copy()
     unbind(obj)
     mesh.vertices.foreach_set("co", co.astype(np.float32).ravel())
     mesh.update()

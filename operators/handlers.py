@@ -42,8 +42,9 @@ def on_load(*_args):
     try:
         for scene in bpy.data.scenes:
             for ob in engine.bound_objects(scene):
-                # Files bound by older versions lack the modifier's lattice dependency.
-                modifier.set_lattice(ob, ob.vpffd.lattice)
+                # Files bound by older versions have an older node group and no solver helper.
+                if modifier.find(ob) is not None and ob.library is None:
+                    modifier.ensure(ob)
             if engine.bound_objects(scene):
                 scene.render.use_lock_interface = True
         context = bpy.context
@@ -55,10 +56,11 @@ def on_load(*_args):
 
 @persistent
 def on_undo(*_args):
-    """Undo and Redo restore the settings, attributes and offsets but not the engine's cached
-    bindings and panel figures: drop them and solve the restored state, so the panel describes
-    what is shown."""
-    engine.forget()
+    """Undo and Redo restore the settings and the solver helpers' offsets but not the panel
+    figures: solve the restored state again, so that the panel describes what is shown. The
+    pipelines' caches stay: their keys hold every input, so a binding is reused exactly when the
+    restored inputs are the ones it was built from (no stall after an undo)."""
+    engine.invalidate()
     try:
         context = bpy.context
         if context.scene is not None:

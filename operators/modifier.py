@@ -1,59 +1,167 @@
-"""The VP-FFD entry in the modifier stack: a Geometry Nodes modifier that adds the offsets the solver
-stores on the mesh (attribute `vpffd_offset`) to the positions. Being a real modifier, it can be
-toggled for viewport and render, reordered and removed like any other."""
-import bpy
+"""The VP-FFD entry in the modifier stack: a Geometry Nodes modifier that deforms whatever reaches
+its slot (see docs/stack.md for the evaluation order).
 
-from .meshio import OFFSET_ATTRIBUTE
+Its node group does two things with the geometry that reaches it:
+- the *tap*: a copy of the input as a point cloud (radius 0, marked `vpffd_tap`), with the live
+  vertex-group weight of every point (`vpffd_weight`). It passes through the modifiers after the
+  slot untouched, so the handler reads the slot's input from the end of the stack;
+- the *result*: the input moved by per-point offsets read, by index, from the object's solver
+  helper (a hidden vertex-only mesh object that the handler writes after every solve).
+Being a real modifier, it is toggled, reordered and removed like any other.
+"""
+import bpy
+import numpy as np
 
 MODIFIER_NAME = "VP-FFD"
-NODE_GROUP_NAME = "VP-FFD Offset"
+NODE_GROUP_NAME = "VP-FFD"
 _TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
+_VERSION = 2                 # the tag's value: groups of older versions are rebuilt
 LATTICE_INPUT = "Lattice"   # object input: makes the lattice or cage a dependency of the mesh
+SOLVER_INPUT = "Solver"     # object input: the helper holding the offsets
+GROUP_INPUT = "Vertex Group"
+INVERT_INPUT = "Invert Vertex Group"
+TAP_ATTRIBUTE = "vpffd_tap"
+WEIGHT_ATTRIBUTE = "vpffd_weight"
+HELPER_TAG = "vpffd_solver"  # custom property of helper objects: the name of their mesh object
+
+
+def _socket(ng, name, socket_type, in_out="INPUT", description=""):
+    item = ng.interface.new_socket(name, in_out=in_out, socket_type=socket_type)
+    item.description = description
+    return item
+
+
+def _build(ng):
+    """(Re)build the node group's nodes and interface."""
+    ng.nodes.clear()
+    for item in list(ng.interface.items_tree):
+        ng.interface.remove(item)
+    _socket(ng, "Geometry", "NodeSocketGeometry")
+    _socket(ng, "Geometry", "NodeSocketGeometry", "OUTPUT")
+    _socket(ng, LATTICE_INPUT, "NodeSocketObject",
+            description="The Lattice or VP-FFD cage the solver reads (set by Bind)")
+    _socket(ng, SOLVER_INPUT, "NodeSocketObject",
+            description="VP-FFD's own helper object holding the solved offsets (set by Bind)")
+    _socket(ng, GROUP_INPUT, "NodeSocketString", description="Vertex group weighting the deformation")
+    _socket(ng, INVERT_INPUT, "NodeSocketBool", description="Invert the vertex group's weights")
+    N, link = ng.nodes, ng.links.new
+    gin, gout = N.new("NodeGroupInput"), N.new("NodeGroupOutput")
+
+    # Result: position + offsets[index] from the solver helper (out of range: no offset).
+    info = N.new("GeometryNodeObjectInfo")
+    info.transform_space = "ORIGINAL"
+    link(gin.outputs[SOLVER_INPUT], info.inputs["Object"])
+    sample = N.new("GeometryNodeSampleIndex")
+    sample.data_type = "FLOAT_VECTOR"
+    sample.domain = "POINT"
+    link(info.outputs["Geometry"], sample.inputs["Geometry"])
+    link(N.new("GeometryNodeInputPosition").outputs[0], sample.inputs["Value"])
+    link(N.new("GeometryNodeInputIndex").outputs[0], sample.inputs["Index"])
+    move = N.new("GeometryNodeSetPosition")
+    link(gin.outputs[0], move.inputs["Geometry"])
+    link(sample.outputs[0], move.inputs["Offset"])
+
+    # Tap: the input's points with their weight: group weight (1 - weight when inverted), or 1
+    # when the mesh has no such group, as the Lattice modifier weighs them.
+    group = N.new("GeometryNodeInputNamedAttribute")
+    group.data_type = "FLOAT"
+    link(gin.outputs[GROUP_INPUT], group.inputs["Name"])
+    inverted = N.new("ShaderNodeMath")
+    inverted.operation = "SUBTRACT"
+    inverted.inputs[0].default_value = 1.0
+    link(group.outputs["Attribute"], inverted.inputs[1])
+    pick_invert = N.new("GeometryNodeSwitch")
+    pick_invert.input_type = "FLOAT"
+    link(gin.outputs[INVERT_INPUT], pick_invert.inputs["Switch"])
+    link(group.outputs["Attribute"], pick_invert.inputs["False"])
+    link(inverted.outputs[0], pick_invert.inputs["True"])
+    pick_exists = N.new("GeometryNodeSwitch")
+    pick_exists.input_type = "FLOAT"
+    link(group.outputs["Exists"], pick_exists.inputs["Switch"])
+    pick_exists.inputs["False"].default_value = 1.0
+    link(pick_invert.outputs[0], pick_exists.inputs["True"])
+    store_weight = N.new("GeometryNodeStoreNamedAttribute")
+    store_weight.data_type = "FLOAT"
+    store_weight.domain = "POINT"
+    store_weight.inputs["Name"].default_value = WEIGHT_ATTRIBUTE
+    link(gin.outputs[0], store_weight.inputs["Geometry"])
+    link(pick_exists.outputs[0], store_weight.inputs["Value"])
+    points = N.new("GeometryNodeMeshToPoints")
+    points.mode = "VERTICES"
+    points.inputs["Radius"].default_value = 0.0
+    link(store_weight.outputs[0], points.inputs["Mesh"])
+    mark = N.new("GeometryNodeStoreNamedAttribute")
+    mark.data_type = "BOOLEAN"
+    mark.domain = "POINT"
+    mark.inputs["Name"].default_value = TAP_ATTRIBUTE
+    mark.inputs["Value"].default_value = True
+    link(points.outputs[0], mark.inputs["Geometry"])
+
+    join = N.new("GeometryNodeJoinGeometry")
+    link(mark.outputs[0], join.inputs[0])
+    link(move.outputs[0], join.inputs[0])
+    link(join.outputs[0], gout.inputs[0])
+    for node, x, y in ((gin, -900, 0), (info, -650, -250), (sample, -400, -200), (move, -150, 0),
+                       (group, -900, -450), (inverted, -650, -500), (pick_invert, -450, -450),
+                       (pick_exists, -250, -450), (store_weight, -150, -300), (points, 50, -300),
+                       (mark, 250, -300), (join, 450, 0), (gout, 650, 0)):
+        node.location = (x, y)
+    ng[_TAG] = _VERSION
 
 
 def offset_node_group():
-    """The shared node group (created once per file): Set Position with Offset = Named Attribute."""
+    """The shared node group (created once per file, rebuilt when made by an older version)."""
     for ng in bpy.data.node_groups:
         if ng.get(_TAG):
+            if ng.get(_TAG) != _VERSION and ng.library is None:
+                _build(ng)
             return ng
     ng = bpy.data.node_groups.new(NODE_GROUP_NAME, "GeometryNodeTree")
-    ng[_TAG] = True
-    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
-    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
-    gin, gout = ng.nodes.new("NodeGroupInput"), ng.nodes.new("NodeGroupOutput")
-    offset = ng.nodes.new("GeometryNodeInputNamedAttribute")
-    offset.data_type = "FLOAT_VECTOR"
-    offset.inputs["Name"].default_value = OFFSET_ATTRIBUTE
-    move = ng.nodes.new("GeometryNodeSetPosition")
-    ng.links.new(gin.outputs[0], move.inputs["Geometry"])
-    ng.links.new(offset.outputs["Attribute"], move.inputs["Offset"])
-    ng.links.new(move.outputs["Geometry"], gout.inputs[0])
-    gin.location, offset.location, move.location, gout.location = (-400, 0), (-400, -150), (-150, 0), (100, 0)
-    _ensure_lattice_input(ng)
+    _build(ng)
     return ng
 
 
-def _ensure_lattice_input(ng):
-    """The group's object input for the lattice or cage (added to groups made by older versions).
-    The modifier's object inputs are dependencies of the mesh, so every evaluation, a render's
-    included, evaluates the lattice or cage before the mesh, even when it is hidden from renders
-    (the solver reads it from the render's own depsgraph)."""
-    for item in ng.interface.items_tree:
-        if getattr(item, "in_out", None) == "INPUT" and item.name == LATTICE_INPUT:
+def _identifier(mod, name):
+    for item in mod.node_group.interface.items_tree:
+        if getattr(item, "in_out", None) == "INPUT" and item.name == name:
             return item.identifier
-    item = ng.interface.new_socket(LATTICE_INPUT, in_out="INPUT", socket_type="NodeSocketObject")
-    item.description = "The Lattice or VP-FFD cage the solver reads (set by Bind)"
-    return item.identifier
+    return None
+
+
+def get_input(mod, name):
+    key = _identifier(mod, name)
+    return None if key is None else mod.get(key)
+
+
+def set_input(mod, name, value):
+    """Set the modifier's input `name` when it differs (writing tags the object for evaluation)."""
+    key = _identifier(mod, name)
+    if key is None:
+        return
+    current = mod.get(key)
+    if isinstance(value, (bpy.types.ID, type(None))):
+        if current is not value:
+            mod[key] = value
+    elif current != value:
+        mod[key] = value
 
 
 def set_lattice(obj, lattice):
     """Point the VP-FFD modifier's lattice input at `lattice` (an Object or None), when it differs."""
     mod = find(obj)
+    if mod is not None:
+        set_input(mod, LATTICE_INPUT, lattice)
+
+
+def sync_inputs(obj, mod=None):
+    """Bring the modifier's lattice, vertex-group and invert inputs in line with obj.vpffd."""
+    mod = mod or find(obj)
     if mod is None:
         return
-    key = _ensure_lattice_input(mod.node_group)
-    if mod.get(key) is not lattice:
-        mod[key] = lattice
+    s = obj.vpffd
+    set_input(mod, LATTICE_INPUT, s.lattice)
+    set_input(mod, GROUP_INPUT, s.vertex_group)
+    set_input(mod, INVERT_INPUT, bool(s.invert_vertex_group and s.vertex_group))
 
 
 def find(obj):
@@ -65,24 +173,123 @@ def find(obj):
 
 
 def ensure(obj):
-    """Find or add the VP-FFD modifier; a new one goes first in the stack, where a Lattice
-    modifier would normally sit (it deforms the mesh's own coordinates)."""
+    """Find or add the VP-FFD modifier. A new one goes where Blender's Add Modifier puts a
+    modifier, the end of the stack; an existing one stays where the user put it."""
     mod = find(obj)
-    if mod is not None:
-        return mod
-    mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
-    mod.node_group = offset_node_group()
-    index = len(obj.modifiers) - 1
-    if index:
-        try:
-            with bpy.context.temp_override(object=obj, active_object=obj):
-                bpy.ops.object.modifier_move_to_index(modifier=mod.name, index=0)
-        except RuntimeError:
-            pass  # no suitable context (e.g. some background scripts): it stays last
+    if mod is None:
+        mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
+    if mod.node_group is None or mod.node_group.get(_TAG) != _VERSION:
+        mod.node_group = offset_node_group()
+    helper(obj, mod)
+    sync_inputs(obj, mod)
     return mod
 
 
 def remove(obj):
     mod = find(obj)
     if mod is not None:
+        solver = get_input(mod, SOLVER_INPUT)
         obj.modifiers.remove(mod)
+        _free_helper(solver)
+
+
+# ------------------------------------------------------------------------------ solver helper
+
+def _new_helper(obj):
+    mesh = bpy.data.meshes.new(f".VP-FFD solver {obj.name}")
+    ob = bpy.data.objects.new(f".VP-FFD solver {obj.name}", mesh)
+    ob[HELPER_TAG] = obj.name
+    ob.hide_viewport = ob.hide_render = True
+    return ob
+
+
+def _free_helper(ob):
+    if ob is None or ob.get(HELPER_TAG) is None:
+        return
+    mesh = ob.data
+    if ob.users == 0:        # still used when a duplicate's modifier shares it
+        bpy.data.objects.remove(ob)
+        if mesh is not None and mesh.users == 0:
+            bpy.data.meshes.remove(mesh)
+
+
+def helper(obj, mod=None, exclusive_of=()):
+    """The solver helper of `obj`'s VP-FFD modifier, made when missing or when another object's
+    modifier uses the same one (`exclusive_of`: helpers already claimed; duplicates of a bound
+    object copy the modifier and with it the helper)."""
+    mod = mod or find(obj)
+    if mod is None:
+        return None
+    ob = get_input(mod, SOLVER_INPUT)
+    if ob is None or ob.type != "MESH" or ob.get(HELPER_TAG) is None or ob in exclusive_of:
+        ob = _new_helper(obj)
+        set_input(mod, SOLVER_INPUT, ob)
+    return ob
+
+
+def write_offsets(helper_ob, offsets):
+    """Store (V, 3) float32 offsets as the helper's vertex positions (resized when V changed)."""
+    mesh = helper_ob.data
+    values = np.ascontiguousarray(offsets, dtype=np.float32).reshape(-1, 3)
+    if len(mesh.vertices) != len(values):
+        mesh.clear_geometry()
+        mesh.vertices.add(len(values))
+    position = mesh.attributes.get("position")
+    if position is not None and len(position.data) == len(values):
+        position.data.foreach_set("vector", values.ravel())
+    else:
+        mesh.vertices.foreach_set("co", values.ravel())
+    mesh.update()
+
+
+def read_offsets(helper_ob):
+    """(V, 3) float32 offsets currently stored in the helper (empty when none)."""
+    if helper_ob is None:
+        return np.zeros((0, 3), np.float32)
+    mesh = helper_ob.data
+    out = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", out)
+    return out.reshape(-1, 3)
+
+
+# ------------------------------------------------------------------------------------ the tap
+
+def _tap_cloud(ob_eval, depsgraph):
+    """(the evaluated point cloud that carries the tap or None, an object to keep alive while
+    the cloud is read)."""
+    get = getattr(ob_eval, "evaluated_geometry", None)
+    if get is not None:        # newer Blender: the object's own geometry set
+        geometry = get()
+        return geometry.pointcloud, geometry
+    original = ob_eval.original
+    for inst in depsgraph.object_instances:
+        # Before that, the non-mesh components of a mesh object appear as instances of it.
+        if inst.is_instance and inst.object.type == "POINTCLOUD" and inst.parent is not None \
+                and inst.parent.original == original:
+            return inst.object.data, None
+    return None, None
+
+
+def read_tap(ob_eval, depsgraph):
+    """(positions (V, 3) float32, weights (V,) float32) of the geometry that reached the VP-FFD
+    slot in this evaluation, in the object's space; None when no tap reached the end of the stack
+    (the modifier is off, or a later Geometry Nodes modifier dropped point clouds)."""
+    cloud, _alive = _tap_cloud(ob_eval, depsgraph)
+    if cloud is None:
+        return None
+    attrs = cloud.attributes
+    position, weight, mark = (attrs.get(n) for n in ("position", WEIGHT_ATTRIBUTE, TAP_ATTRIBUTE))
+    if position is None or mark is None:
+        return None
+    n = len(position.data)
+    co = np.empty(n * 3, np.float32)
+    position.data.foreach_get("vector", co)
+    w = np.ones(n, np.float32)
+    if weight is not None and weight.data_type == "FLOAT":
+        weight.data.foreach_get("value", w)
+    is_tap = np.empty(n, bool)
+    mark.data.foreach_get("value", is_tap)
+    co = co.reshape(-1, 3)
+    if not is_tap.all():       # a later modifier joined points of its own
+        co, w = co[is_tap], w[is_tap]
+    return co, w

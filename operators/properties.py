@@ -47,6 +47,7 @@ def _redraw(self, context):
 
 def _settings_changed(self, context):
     from . import engine
+    modifier.sync_inputs(self.id_data)
     engine.request_update(self.id_data)
 
 
@@ -72,7 +73,7 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="What vertices outside a cage's region do")
     vertex_group: StringProperty(
         name="Vertex Group", update=_settings_changed,
-        description="Vertex group that scales the deformation per vertex (read at bind time)")
+        description="Vertex group that scales the deformation per vertex, as the Lattice modifier's (read live)")
     invert_vertex_group: BoolProperty(
         name="Invert", default=False, update=_settings_changed,
         description="Invert the vertex group's influence")
@@ -118,6 +119,12 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
     pin_mesh_rest: FloatVectorProperty(
         name="Mesh at Bind", size=16, default=(1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1),
         options={"HIDDEN"}, description="World matrix of the mesh when it was bound")
+    lattice_rest_lo: FloatVectorProperty(
+        name="Lattice Rest Min", size=3, options={"HIDDEN"},
+        description="Lower corner of the lattice's rest grid at Bind (used while the lattice is in Edit Mode)")
+    lattice_rest_hi: FloatVectorProperty(
+        name="Lattice Rest Max", size=3, options={"HIDDEN"},
+        description="Upper corner of the lattice's rest grid at Bind (used while the lattice is in Edit Mode)")
     enabled: BoolProperty(
         name="Enabled", get=_get_enabled, set=_set_enabled,
         description="Show the VP-FFD modifier in viewport and render")

@@ -335,13 +335,6 @@ def test_bad_input_is_reported_and_nothing_is_lost(ext):
         with pytest.raises(eng.BindError, match="Edit Mode"):
             eng.check_bindable(ball)
         bpy.ops.object.mode_set(mode="OBJECT")
-    # Linked duplicates share a mesh: refused.
-    twin = ball.copy()
-    bpy.context.scene.collection.objects.link(twin)
-    ball.vpffd.lattice = lat
-    with pytest.raises(eng.BindError, match="shared"):
-        eng.check_bindable(ball)
-    bpy.data.objects.remove(twin)
     assert _bind(ball, lattice=lat) == {"FINISHED"}
     # Lattice renamed: still works. Lattice deleted: no exception, an error, the plain mesh.
     lat.name = "Renamed"
@@ -351,15 +344,47 @@ def test_bad_input_is_reported_and_nothing_is_lost(ext):
     bpy.context.scene.frame_set(11)
     assert "lattice" in eng.stats(ball)["error"]
     np.testing.assert_array_equal(_evaluated(ball)[0].astype(np.float32).ravel(), np.frombuffer(original, np.float32))
-    # Topology edited after binding: an error offering a re-bind, coordinates intact.
+    # Topology edited after binding: the new topology is taken as it comes (no Re-bind), the
+    # mesh's own coordinates stay intact.
     lat2 = _lattice("Lattice2")
+    _animate_squash(lat2)
     ball.vpffd.lattice = lat2
     ball.data.vertices.add(1)
-    bpy.context.scene.frame_set(12)
-    assert "Re-bind" in eng.stats(ball)["error"]
-    assert _mesh_co(ball)[:-3].tobytes() == original
-    assert _bind(ball) == {"FINISHED"}
+    rest = _volume(ball)
+    bpy.context.scene.frame_set(15)
     assert eng.stats(ball).get("error") is None
+    assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
+    assert _mesh_co(ball)[:-3].tobytes() == original
+
+
+def test_linked_duplicates_each_deform_their_own_placement(ext):
+    """Alt-D: two objects share one mesh; each has its own VP-FFD modifier and solver helper, so
+    each shows the solve for its own placement in the lattice (no Make Single User needed)."""
+    eng = _engine(ext)
+    ball = _sphere(radius=0.6)
+    lat = _lattice()
+    _animate_squash(lat)
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    twin = ball.copy()                       # copies the modifier (and its helper input) too
+    bpy.context.scene.collection.objects.link(twin)
+    twin.location = (0.3, 0.2, -0.1)
+    plain, mod = _plain_copy(ball, lat)
+    plain.location = twin.location
+    scene = bpy.context.scene
+    for f in (1, 8, 15):
+        scene.frame_set(f)
+        for ob in (ball, twin):
+            assert eng.stats(ob).get("error") is None, f"{ob.name}: {eng.stats(ob).get('error')}"
+        rest = eng.stats(twin)["input_volume"]
+        assert abs(eng.stats(twin)["volume_percent"] - 100) <= 100 * VOLUME_TOL
+    helpers = {ob.modifiers[-1][k] for ob in (ball, twin) for k in ob.modifiers[-1].keys()
+               if getattr(ob.modifiers[-1][k], "type", None) == "MESH"}
+    assert len(helpers) == 2, "each object has a solver helper of its own"
+    ball.vpffd.axes = twin.vpffd.axes = "NONE"
+    scene.frame_set(15)
+    ours, theirs = _evaluated(twin)[0], _evaluated(plain)[0]
+    assert np.abs(ours - theirs).max() <= 1e-5 * np.ptp(theirs, 0).max()
+    assert rest > 0
 
 
 def test_open_mesh_single_point_axis_and_outside_vertices_warn(ext):
@@ -428,15 +453,28 @@ def test_renders_run_the_solver_with_the_render_depsgraph(ext, tmp_path):
     assert abs(eng.stats(ball)["volume_percent"] - 100) <= 100 * VOLUME_TOL
 
 
-def test_moved_vertices_are_re_embedded_and_the_modifier_goes_first(ext):
+def test_bind_appends_the_modifier_and_rebind_leaves_it_where_the_user_put_it(ext):
+    """Bind adds VP-FFD where Blender's Add Modifier would (the end of the stack), so a modifier
+    already there comes before it and is deformed with the mesh; Re-bind does not move it."""
+    mod_of = ext.module.operators.modifier.find
     ball = _sphere()
-    ball.modifiers.new("Smooth", "SMOOTH")                     # a modifier already in the stack
+    ball.modifiers.new("Smooth", "SMOOTH").factor = 0.8            # a modifier already in the stack
     lat = _lattice()
     _animate_squash(lat, 0.5)
     _bind(ball, lattice=lat, axes="XYZ")
-    assert ball.modifiers[0] == ext.module.operators.modifier.find(ball)
+    assert ball.modifiers[-1] == mod_of(ball)
+    bpy.context.scene.frame_set(15)
+    vp_mod = mod_of(ball)
+    vp_mod.show_viewport = False
+    smoothed = _volume(ball)                    # what reaches the VP-FFD slot
+    vp_mod.show_viewport = True
+    assert abs(_volume(ball) / smoothed - 1) <= VOLUME_TOL
+    with bpy.context.temp_override(object=ball, active_object=ball):
+        bpy.ops.object.modifier_move_to_index(modifier=vp_mod.name, index=0)
+    _bind(ball)                                  # Re-bind
+    assert ball.modifiers[0] == mod_of(ball)
+    # Move the vertices (as an Edit Mode session would): the new shape is taken as it comes.
     ball.modifiers["Smooth"].show_viewport = False
-    # Move the vertices (as an Edit Mode session would): the new shape is the new rest shape.
     co = _mesh_co(ball).reshape(-1, 3)
     co[:, 0] *= 1.3
     ball.data.vertices.foreach_set("co", co.astype(np.float32).ravel())

@@ -12,6 +12,7 @@ from .bases import INTERPOLATIONS
 from .binding import Binding, bind
 from .cage import Cage, box_cage, extrude
 from .cage_binding import CageBinding
+from .frame import FrameInputs, FrameResult, Pipeline
 from .jacobian import jacobian_det
 from .mesh import Topology
 from .lattice import Lattice
@@ -20,6 +21,6 @@ from .shapes import box, icosphere
 from .solve import Solution
 from .volume import signed_volume
 
-__all__ = ["INTERPOLATIONS", "Binding", "Cage", "CageBinding", "Lattice", "Solution", "Topology", "bind", "box", "box_cage", "extrude", "icosphere",
+__all__ = ["INTERPOLATIONS", "Binding", "Cage", "CageBinding", "FrameInputs", "FrameResult", "Lattice", "Pipeline", "Solution", "Topology", "bind", "box", "box_cage", "extrude", "icosphere",
            "jacobian_det", "read_mdd", "read_pc2", "signed_volume", "write_mdd", "write_pc2"]
 __version__ = "0.1.0"

@@ -1,0 +1,183 @@
+"""One frame of a deformer in a modifier stack, as a pure function of that frame's inputs.
+
+`FrameInputs` holds everything a frame's result depends on: the positions that reach the
+deformer's slot (in the object's space), their faces, the lattice (or cage) with its evaluated
+control points, the object-to-lattice matrix, the weights and the correction settings.
+`Pipeline.evaluate` turns them into a `FrameResult`: the slot's output positions, the corrected
+control points, the input and output volumes and the warnings. The pipeline keeps what is costly
+to rebuild (the faces' `Topology`, the binding of the last embedding) as a cache whose keys hold
+every input it was built from, so a result never depends on which frame was evaluated before.
+See docs/stack.md for where this sits in Blender's evaluation.
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import lattice_eval
+from .binding import bind
+from .cage import Cage
+from .jacobian import jacobian_det
+from .lattice import Lattice
+from .mesh import Topology
+
+
+@dataclass(eq=False)
+class FrameInputs:
+    """The inputs of one frame (arrays are not copied; do not change them afterwards).
+
+    positions: (V, 3) positions that reach the slot, in the object's space.
+    tris: (F, 3) their triangles, or None when they are unknown (then the plain deformation only).
+    lattice: a `Lattice` or `Cage` (its rest state); points: (N, 3) its evaluated control points
+        in lattice space.
+    matrix: (4, 4) object space -> lattice space.
+    weights: (V,) per-position weight (vertex group), or None for 1.
+    lattice_weights: (N,) weights of the lattice's own vertex group, or None. As in Blender's
+        Lattice modifier, a position's influence is then multiplied by its weight times the
+        lattice-interpolated group weight.
+    strength: scales every displacement (Blender's Strength).
+    correct: False for the plain deformation (Correction None, no pins).
+    axes / directions, volume_scale, mobility (N,), pins [(vertex, target in lattice space)],
+    islands: the correction, as for `Binding.solve`. The target volume is volume_scale times the
+    volume that reaches the slot.
+    cage_depth, cage_outside: for a `Cage`.
+    dtype: the binding's float type.
+    """
+    positions: np.ndarray
+    tris: object
+    lattice: object
+    points: np.ndarray
+    matrix: np.ndarray
+    weights: object = None
+    lattice_weights: object = None
+    strength: float = 1.0
+    correct: bool = True
+    axes: str = "XYZ"
+    directions: object = None
+    volume_scale: float = 1.0
+    mobility: object = None
+    pins: list = field(default_factory=list)
+    islands: bool = False
+    cage_depth: int = 3
+    cage_outside: str = "FOLLOW"
+    dtype: object = np.float32
+
+
+@dataclass
+class FrameResult:
+    """What one frame gives. Positions in the object's space, points in lattice space."""
+    positions: np.ndarray          #: (V, 3) float64 output of the slot
+    points: np.ndarray             #: (N, 3) control points that produce it (strength applied)
+    input_volume: float = None     #: volume that reaches the slot (None without faces)
+    volume: float = None           #: volume of the output
+    plain_volume: float = None     #: volume of the plain deformation
+    warnings: tuple = ()
+    binding: object = None         #: the binding used (None without faces)
+    rebound: bool = False          #: whether this frame had to embed the positions anew
+    solution: object = None        #: the `Solution` of a corrected frame
+
+
+def _transform(points, mat):
+    return points @ mat[:3, :3].T + mat[:3, 3]
+
+
+class Pipeline:
+    """Evaluates frames; holds the caches (topology, binding) between them.
+
+    solver: optional callable ``solver(binding, points, options) -> Solution`` replacing
+    `Binding.solve` (e.g. a GPU path); options are the keyword arguments of `Binding.solve`.
+    """
+
+    def __init__(self, solver=None):
+        self.solver = solver
+        self.topology = None
+        self.binding = None
+        self._binding_key = None
+
+    def clear(self):
+        self.topology = self.binding = self._binding_key = None
+
+    def _topology(self, tris, n_verts):
+        t = self.topology
+        if t is None or t.n_verts != n_verts or not t.matches(tris):
+            t = self.topology = Topology(tris, n_verts)
+        return t
+
+    def _embed(self, inp, verts, influence):
+        """The binding of `verts` (lattice space): reused when every input of it is unchanged."""
+        lat = inp.lattice
+        cage = isinstance(lat, Cage)
+        # A lattice is known by its values; a cage (large) by identity: the caller keeps one
+        # `Cage` object while its rest state is unchanged.
+        model = (("cage", id(lat), inp.cage_depth, inp.cage_outside) if cage else
+                 ("lattice", lat.shape, lat.interpolation, lat.lo.tobytes(), lat.hi.tobytes()))
+        key = (model, np.dtype(inp.dtype).name)
+        old = self._binding_key
+        if (old is not None and old[0] == key and self.binding is not None
+                and (not cage or self.binding.lattice is lat) and np.array_equal(old[1], verts)
+                and np.array_equal(old[2], influence) and self.topology is not None
+                and self.topology.matches(inp.tris)):
+            return self.binding, False
+        topology = self._topology(inp.tris, len(verts))
+        extra = dict(depth=inp.cage_depth, outside=inp.cage_outside) if cage else {}
+        self.binding = None   # never keep a binding whose inputs are not all in its key
+        self.binding = bind(lat, verts, topology.tris, influence=influence, dtype=inp.dtype,
+                            topology=topology, **extra)
+        self._binding_key = (key, verts.copy(), influence.copy())
+        return self.binding, True
+
+    def evaluate(self, inp):
+        """The `FrameResult` of `inp`. Raises ValueError for inputs that give no defined result."""
+        X = np.asarray(inp.positions, dtype=np.float64)
+        M = np.asarray(inp.matrix, dtype=np.float64)
+        lat = inp.lattice
+        if not isinstance(lat, (Lattice, Cage)):
+            raise ValueError(f"lattice must be a Lattice or a Cage, got {type(lat).__name__}")
+        grid = lat.rest_points
+        P = np.asarray(inp.points, dtype=np.float64)
+        if P.shape != grid.shape:
+            raise ValueError(f"points must have shape {grid.shape}, got {P.shape}")
+        verts = _transform(X, M)
+        weights = np.ones(len(X)) if inp.weights is None else np.asarray(inp.weights, np.float64)
+        influence = weights
+        if inp.lattice_weights is not None:
+            if isinstance(lat, Cage):
+                raise ValueError("a cage has no lattice vertex group")
+            # Blender's Lattice modifier blends each position by its own weight times the lattice
+            # group's weights interpolated with the lattice's basis (docs/stack.md).
+            lw = lattice_eval.interpolate(lat, verts, np.asarray(inp.lattice_weights, np.float64))
+            influence = weights * (weights * inp.strength) * lw
+        # Strength scales every displacement alike: it scales the control points' displacement.
+        P_used = grid + float(inp.strength) * (P - grid)
+        back = np.linalg.inv(M)
+        if inp.tris is None:
+            if inp.correct:
+                raise ValueError("no faces: the volume cannot be corrected")
+            out = verts + influence[:, None] * lattice_eval.interpolate(lat, verts, P_used - grid)
+            return FrameResult(positions=_transform(out, back), points=P_used)
+        binding, rebound = self._embed(inp, verts, influence)
+        warnings = []
+        solution = None
+        if inp.correct:
+            options = dict(axes=inp.axes, directions=inp.directions, volume_scale=inp.volume_scale,
+                           preserve_volume=bool(inp.axes or inp.directions is not None),
+                           mobility=inp.mobility, pins=inp.pins, islands=inp.islands)
+            if self.solver is not None:
+                sol = self.solver(binding, P_used, options)
+            else:
+                sol = binding.solve(P_used, **options)
+            solution = sol
+            out, used, volume, plain = sol.verts, sol.points, sol.volume, sol.plain_volume
+            warnings.extend(sol.warnings)
+        else:
+            sol = binding.solve(P_used, axes="", preserve_volume=False)
+            out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
+        return FrameResult(positions=_transform(out, back), points=used, input_volume=binding.rest_volume,
+                           volume=volume, plain_volume=plain, warnings=tuple(warnings),
+                           binding=binding, rebound=rebound, solution=solution)
+
+    @staticmethod
+    def folds(result):
+        """Vertices of a frame's result where the deformation folds space (Jacobian det <= 0)."""
+        if result.binding is None:
+            return None
+        return int((jacobian_det(result.binding, result.points) <= 0).sum())

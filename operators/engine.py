@@ -314,12 +314,13 @@ def _zero_offsets(obj, state=None):
 def _write(state, helper, offsets):
     """Write offsets to the helper unless it already holds exactly these (every write makes
     Blender evaluate the object again, and the handler runs again after it)."""
-    values = meshio.float32_or_raise(offsets, "the offsets")
+    values = meshio.float32_or_raise(offsets, "the offsets").reshape(-1, 3)
     if state.written is not None and np.array_equal(state.written, values) \
             and len(helper.data.vertices) == len(values):
-        return
+        return values
     modifier.write_offsets(helper, values)
     state.written = values
+    return values
 
 
 def update(obj, depsgraph, force=False):
@@ -443,11 +444,11 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         offsets = result.positions - X
         if not np.isfinite(offsets).all():
             raise ValueError("the solve produced non-finite offsets; nothing was written")
-        _write(state, helper, offsets)
+        offsets32 = _write(state, helper, offsets)
         seconds = time.perf_counter() - t0
         state.signature, state.result = signature, result
         state.input = X
-        state.output = (X + offsets).astype(np.float32)
+        state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
         edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
         state.overlay = (meshio.transform(result.points, M_lat), edges)
 

@@ -315,14 +315,18 @@ def test_bad_paths_are_refused(bk, tmp_path):
             bpy.ops.object.vpffd_bake(filepath=str(notes))
     assert notes.read_text() == "not a cache"
 
-    # What the stack must look like: nothing deforming before VP-FFD, no mesh shape keys.
+    # Modifiers before VP-FFD and mesh shape keys are baked in: the cache holds what the slot gives.
     twist = ball.modifiers.new("Twist", "SIMPLE_DEFORM")
+    twist.angle = 0.6
     with bpy.context.temp_override(object=ball, active_object=ball):
         bpy.ops.object.modifier_move_to_index(modifier=twist.name, index=0)
-    refused(str(tmp_path / "y.pc2"), "comes before VP-FFD")
-    twist.show_viewport = twist.show_render = False
     ball.shape_key_add(name="Basis")
-    refused(str(tmp_path / "y.pc2"), "shape keys")
+    path = tmp_path / "y.pc2"
+    bk.bake(ball, scene, str(path), FIRST, 2)
+    scene.frame_set(2)
+    live = bk.engine.slot_output(ball)
+    np.testing.assert_array_equal(pcache.read_pc2(path)[0][-1], live)
+    assert not np.array_equal(live, np.array([v.co for v in ball.data.vertices], np.float32))
 
 
 def test_switch_refuses_a_cache_that_does_not_fit(bk, tmp_path):

@@ -1,0 +1,404 @@
+"""VP-FFD anywhere in a modifier stack, headless: it deforms what reaches its slot.
+
+For each kind of modifier before it (Armature with a bending bone, animated mesh shape keys,
+Subdivision Surface, Simple Deform, another Lattice) and a Subdivision Surface after it, on every
+frame of an animation:
+- Correction None equals a real Lattice modifier in the same slot of a twin object;
+- with XYZ, the volume of the slot's output equals the volume that reaches the slot, both measured
+  here on evaluated meshes (the input on a twin that stops before the slot, the output with the
+  modifiers after the slot switched off), and the panel's figure is that ratio.
+Also: vertex-group weights repainted after Bind, the lattice's own vertex group, and the lattice's
+Edit Mode (points moved with `transform.resize`, a Mobility Group set).
+"""
+import math
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
+
+try:
+    from . import extension_harness as eh
+    from .blender_ref import triangle_mesh
+except ImportError:
+    import extension_harness as eh
+    from blender_ref import triangle_mesh
+
+FRAMES = (1, 7, 14, 20)
+SHAPE_TOL = 1e-5      # of the object's size
+VOLUME_TOL = 1e-5     # relative
+PANEL_TOL = 1e-6      # relative, panel figure against the measured ratio
+
+
+@pytest.fixture
+def ext(vpffd):
+    eh.reset_scene()
+    bpy.context.scene.frame_set(1)
+    yield vpffd
+    eh.reset_scene()
+
+
+def _engine(ext):
+    return ext.module.operators.engine
+
+
+# ----------------------------------------------------------------------------------- the scene
+
+def _lattice():
+    """A 4x4x4 B-spline lattice around the mesh whose shape key squashes it (frames 1 -> 20)."""
+    lt = bpy.data.lattices.new("Lattice")
+    lt.points_u = lt.points_v = lt.points_w = 4
+    for a in "uvw":
+        setattr(lt, f"interpolation_type_{a}", "KEY_BSPLINE")
+    ob = bpy.data.objects.new("Lattice", lt)
+    ob.scale = (0.8, 0.8, 1.1)
+    bpy.context.scene.collection.objects.link(ob)
+    ob.shape_key_add(name="Basis")
+    key = ob.shape_key_add(name="Squash")
+    co = np.empty(len(lt.points) * 3, np.float32)
+    lt.points.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] *= 0.55
+    co[:, :2] *= 1.0 + 0.3 * np.cos(co[:, 2:3])
+    co[:, 0] += 0.2 * co[:, 2]
+    key.data.foreach_set("co", co.ravel())
+    for f, v in ((1, 0.0), (20, 1.0)):
+        key.value = v
+        key.keyframe_insert("value", frame=f)
+    return ob
+
+
+def _capsule_mesh():
+    v, f = core.icosphere(5, 0.7)        # 10,242 vertices
+    v = v * (1.0, 1.0, 1.5)
+    return v, f
+
+
+def _object(name):
+    v, f = _capsule_mesh()
+    ob = bpy.data.objects.new(name, triangle_mesh(v, f, name))
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+def _armature():
+    arm = bpy.data.armatures.new("Rig")
+    ob = bpy.data.objects.new("Rig", arm)
+    bpy.context.scene.collection.objects.link(ob)
+    bpy.context.view_layer.objects.active = ob
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        bpy.ops.object.mode_set(mode="EDIT")
+        lower = arm.edit_bones.new("Lower")
+        lower.head, lower.tail = (0, 0, -1.2), (0, 0, 0)
+        upper = arm.edit_bones.new("Upper")
+        upper.head, upper.tail = (0, 0, 0), (0, 0, 1.2)
+        upper.parent = lower
+        bpy.ops.object.mode_set(mode="OBJECT")
+    pose = ob.pose.bones["Upper"]
+    pose.rotation_mode = "XYZ"
+    for f, angle in ((1, 0.0), (20, math.radians(60))):
+        pose.rotation_euler = (angle, 0, 0)
+        pose.keyframe_insert("rotation_euler", frame=f)
+    return ob
+
+
+def _weights_by_height(ob, names=("Lower", "Upper")):
+    v = np.array([p.co for p in ob.data.vertices])
+    t = np.clip((v[:, 2] + 0.35) / 0.7, 0, 1)
+    for name, w in zip(names, (1 - t, t)):
+        g = ob.vertex_groups.new(name=name)
+        for i, wi in enumerate(w):
+            if wi > 0:
+                g.add([i], float(wi), "REPLACE")
+
+
+def _shape_keys(ob):
+    ob.shape_key_add(name="Basis")
+    key = ob.shape_key_add(name="Bulge")
+    co = np.empty(len(ob.data.vertices) * 3, np.float32)
+    ob.data.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, :2] *= (1.0 + 0.35 * np.exp(-4 * co[:, 2:3] ** 2))
+    key.data.foreach_set("co", co.ravel())
+    for f, value in ((1, 0.0), (20, 1.0)):
+        key.value = value
+        key.keyframe_insert("value", frame=f)
+
+
+def _second_lattice(cache={}):
+    ob = bpy.data.objects.get("Before")
+    if ob is None:
+        lt = bpy.data.lattices.new("Before")
+        lt.points_u = lt.points_v = lt.points_w = 3
+        ob = bpy.data.objects.new("Before", lt)
+        ob.scale = (1.6, 1.6, 2.4)
+        bpy.context.scene.collection.objects.link(ob)
+        co = np.empty(27 * 3, np.float32)
+        lt.points.foreach_get("co", co)
+        co = co.reshape(-1, 3)
+        co += np.random.default_rng(5).normal(0, 0.08, co.shape)
+        lt.points.foreach_set("co_deform", co.ravel())
+        for f, x in ((1, 0.0), (20, 0.4)):
+            ob.location = (x, 0, 0)
+            ob.keyframe_insert("location", frame=f)
+    return ob
+
+
+def _before(ob, kind):
+    """Add the modifiers (or shape keys) that come before the VP-FFD slot."""
+    if kind == "armature":
+        _weights_by_height(ob)
+        mod = ob.modifiers.new("Armature", "ARMATURE")
+        mod.object = bpy.data.objects.get("Rig") or _armature()
+    elif kind == "shape_keys":
+        _shape_keys(ob)
+    elif kind == "subsurf_before":
+        ob.modifiers.new("Subdivision", "SUBSURF").levels = 1
+    elif kind == "simple_deform":
+        mod = ob.modifiers.new("Bend", "SIMPLE_DEFORM")
+        mod.deform_method = "BEND"
+        mod.deform_axis = "Z"
+        for f, angle in ((1, 0.0), (20, 1.2)):
+            mod.angle = angle
+            mod.keyframe_insert("angle", frame=f)
+    elif kind == "lattice_before":
+        ob.modifiers.new("Before", "LATTICE").object = _second_lattice()
+
+
+def _after(ob, kind):
+    if kind == "subsurf_after":
+        ob.modifiers.new("Subdivision After", "SUBSURF").levels = 1
+
+
+KINDS = ("armature", "shape_keys", "subsurf_before", "simple_deform", "lattice_before", "subsurf_after")
+
+
+def _bind(ob, **settings):
+    for k, v in settings.items():
+        setattr(ob.vpffd, k, v)
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        return bpy.ops.object.vpffd_bind()
+
+
+def _vpffd_object(kind, lattice, **settings):
+    ob = _object("VPFFD_" + kind)
+    _before(ob, kind)
+    assert _bind(ob, lattice=lattice, **settings) == {"FINISHED"}
+    _after(ob, kind)
+    return ob
+
+
+def _lattice_twin(kind, lattice, **modifier_settings):
+    ob = _object("Twin_" + kind)
+    _before(ob, kind)
+    mod = ob.modifiers.new("Lattice", "LATTICE")
+    mod.object = lattice
+    for k, v in modifier_settings.items():
+        setattr(mod, k, v)
+    _after(ob, kind)
+    return ob
+
+
+def _input_twin(kind):
+    """The same object with the stack cut at the VP-FFD slot: its evaluated mesh is the input."""
+    ob = _object("Input_" + kind)
+    _before(ob, kind)
+    return ob
+
+
+# ------------------------------------------------------------------------------- measurements
+
+def _evaluated(ob):
+    """(world coords (V, 3) float64 of the float32 evaluated mesh, tris (F, 3))."""
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = ob.evaluated_get(dg)
+    me = ev.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    me.calc_loop_triangles()
+    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
+    me.loop_triangles.foreach_get("vertices", tris)
+    M = np.array(ev.matrix_world, dtype=np.float64)
+    co = co.reshape(-1, 3).astype(np.float64)
+    return co @ M[:3, :3].T + M[:3, 3], tris.reshape(-1, 3)
+
+
+def _volume(ob):
+    co, tris = _evaluated(ob)
+    a, b, c = co[tris[:, 0]], co[tris[:, 1]], co[tris[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def _slot_output_volume(ob):
+    """Volume of the VP-FFD slot's output: the object's evaluated mesh with the modifiers after
+    the slot switched off (they are switched on again)."""
+    after = []
+    seen = False
+    for m in ob.modifiers:
+        if seen and m.show_viewport:
+            after.append(m)
+        seen = seen or (m.type == "NODES" and m.name.startswith("VP-FFD"))
+    for m in after:
+        m.show_viewport = False
+    try:
+        return _volume(ob)
+    finally:
+        for m in after:
+            m.show_viewport = True
+
+
+# ------------------------------------------------------------------------------------- tests
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_correction_none_equals_a_lattice_modifier_in_the_same_slot(ext, kind):
+    lat = _lattice()
+    ours = _vpffd_object(kind, lat, axes="NONE")
+    twin = _lattice_twin(kind, lat)
+    source = _input_twin(kind)
+    _after(source, kind)             # the same stack without the slot
+    scene = bpy.context.scene
+    moved = 0.0
+    for f in FRAMES + (3,):          # and back in time: nothing carries over
+        scene.frame_set(f)
+        assert _engine(ext).stats(ours).get("error") is None, _engine(ext).stats(ours)["error"]
+        a, _ = _evaluated(ours)
+        b, _ = _evaluated(twin)
+        size = float(np.ptp(b, 0).max())
+        assert a.shape == b.shape
+        assert np.abs(a - b).max() <= SHAPE_TOL * size, f"frame {f}"
+        moved = max(moved, float(np.abs(b - _evaluated(source)[0]).max()))
+    assert moved > 0.05, "the lattice must move the mesh"
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_xyz_keeps_the_volume_that_reaches_the_slot_on_every_frame(ext, kind):
+    lat = _lattice()
+    ours = _vpffd_object(kind, lat, axes="XYZ")
+    plain = _lattice_twin(kind, lat)
+    source = _input_twin(kind)
+    scene = bpy.context.scene
+    worst_plain = 0.0
+    volumes_in = []
+    for f in range(1, 21):
+        scene.frame_set(f)
+        info = _engine(ext).stats(ours)
+        assert info.get("error") is None, info.get("error")
+        v_in = _volume(source)
+        v_out = _slot_output_volume(ours)
+        volumes_in.append(v_in)
+        assert abs(v_out / v_in - 1) <= VOLUME_TOL, f"frame {f}: {v_out / v_in:.8f}"
+        assert abs(info["volume_percent"] / 100 - v_out / v_in) <= PANEL_TOL, f"frame {f}"
+        if kind != "subsurf_after":
+            worst_plain = max(worst_plain, abs(_volume(plain) / v_in - 1))
+    if kind != "subsurf_after":
+        assert worst_plain > 0.05, "the plain lattice must change the volume for this test to mean anything"
+    if kind in ("shape_keys", "armature", "simple_deform", "lattice_before"):
+        assert np.ptp(volumes_in) > 0 or kind != "shape_keys", "the input animates"
+
+
+def _repaint(ob, name, weights):
+    g = ob.vertex_groups.get(name) or ob.vertex_groups.new(name=name)
+    for i, w in enumerate(weights):
+        g.add([i], float(w), "REPLACE")
+    ob.data.update()
+
+
+@pytest.mark.parametrize("invert", [False, True])
+def test_weights_repainted_after_bind_and_the_lattices_own_group_follow_live(ext, invert):
+    rng = np.random.default_rng(11)
+    lat = _lattice()
+    ours = _object("Ours")
+    twin = _object("Twin")
+    n = len(ours.data.vertices)
+    first = rng.uniform(0, 1, n)
+    for ob in (ours, twin):
+        _repaint(ob, "W", first)
+    assert _bind(ours, lattice=lat, axes="NONE", vertex_group="W", invert_vertex_group=invert,
+                 strength=0.8) == {"FINISHED"}
+    mod = twin.modifiers.new("Lattice", "LATTICE")
+    mod.object, mod.vertex_group, mod.invert_vertex_group, mod.strength = lat, "W", invert, 0.8
+    scene = bpy.context.scene
+
+    def check(f, what):
+        scene.frame_set(f)
+        a, b = _evaluated(ours)[0], _evaluated(twin)[0]
+        assert np.abs(a - b).max() <= SHAPE_TOL * np.ptp(b, 0).max(), what
+
+    check(14, "at bind")
+    second = rng.uniform(0, 1, n)
+    for ob in (ours, twin):
+        _repaint(ob, "W", second)
+    check(15, "weights repainted after Bind")
+    group = lat.vertex_groups.new(name="LW")
+    lw = rng.uniform(0, 1, len(lat.data.points))
+    lw[::3] = 0.0
+    for i, w in enumerate(lw):
+        if w > 0:
+            group.add([i], float(w), "REPLACE")
+    lat.data.vertex_group = "LW"
+    check(16, "the lattice's own vertex group")
+    ours.vpffd.axes = "XYZ"
+    scene.frame_set(17)
+    ours.modifiers[-1].show_viewport = False
+    v_in = _volume(ours)
+    ours.modifiers[-1].show_viewport = True
+    assert abs(_volume(ours) / v_in - 1) <= VOLUME_TOL
+
+
+def test_lattice_edit_mode_follows_live_with_a_mobility_group(ext):
+    """Tab into the lattice with a Mobility Group set (this crashed Blender), move points with
+    the transform operator: the meshes follow without leaving Edit Mode."""
+    lat = _lattice()
+    group = lat.vertex_groups.new(name="Mobile")
+    for i in range(len(lat.data.points)):
+        group.add([i], 0.25 + 0.75 * (i % 2), "REPLACE")
+    plain = _object("Plain")
+    keep = _object("Keep")
+    twin = _lattice_twin("none", lat)
+    source = _input_twin("none")
+    assert _bind(plain, lattice=lat, axes="NONE", mobility_group="Mobile") == {"FINISHED"}
+    assert _bind(keep, lattice=lat, axes="XYZ", mobility_group="Mobile") == {"FINISHED"}
+    scene = bpy.context.scene
+    scene.frame_set(1)
+    rest = _volume(keep)
+    view_layer = bpy.context.view_layer
+    for ob in view_layer.objects:
+        ob.select_set(ob == lat)
+    view_layer.objects.active = lat
+    with bpy.context.temp_override(object=lat, active_object=lat, selected_objects=[lat],
+                                   selected_editable_objects=[lat]):
+        assert bpy.ops.object.mode_set(mode="EDIT") == {"FINISHED"}
+        try:
+            assert lat.data.is_editmode
+            bpy.ops.lattice.select_all(action="DESELECT")
+            bpy.ops.lattice.select_random(ratio=0.5, seed=3)
+            assert bpy.ops.transform.resize(value=(1.3, 1.0, 0.6)) == {"FINISHED"}
+            assert bpy.ops.transform.translate(value=(0.1, 0.0, -0.05)) == {"FINISHED"}
+            for ob in (plain, keep):
+                assert _engine(ext).stats(ob).get("error") is None, _engine(ext).stats(ob)["error"]
+            a, b = _evaluated(plain)[0], _evaluated(twin)[0]
+            assert np.abs(b - _evaluated(source)[0]).max() > 0.02, "the edit moves the mesh"
+            assert np.abs(a - b).max() <= SHAPE_TOL * np.ptp(b, 0).max()
+            assert abs(_volume(keep) / rest - 1) <= VOLUME_TOL
+            assert lat.data.is_editmode
+        finally:
+            bpy.ops.object.mode_set(mode="OBJECT")
+    scene.frame_set(2)
+    assert _engine(ext).stats(keep).get("error") is None
+    assert abs(_volume(keep) / rest - 1) <= VOLUME_TOL
+
+
+def test_undo_keeps_the_binding(ext):
+    """After an undo with unchanged inputs the cached binding is reused (no re-embedding)."""
+    eng = _engine(ext)
+    lat = _lattice()
+    ob = _object("Ball")
+    assert _bind(ob, lattice=lat, axes="XYZ") == {"FINISHED"}
+    bpy.context.scene.frame_set(10)
+    state = eng._cache[ob.session_uid]
+    binding = state.binding
+    ext.module.operators.handlers.on_undo()
+    assert eng._cache[ob.session_uid].binding is binding
+    assert eng.stats(ob).get("rebound") is False

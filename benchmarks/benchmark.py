@@ -583,6 +583,9 @@ def main(argv=None):
     ap.add_argument("--update-readme", action="store_true", help="rewrite README.md's benchmark table")
     ap.add_argument("--no-gpu", action="store_true", help="skip the GPU (compute shader) path")
     ap.add_argument("--no-cage", action="store_true", help="skip the cages of arbitrary topology")
+    ap.add_argument("--no-stack", action="store_true", help="skip the modifier-stack frame_set figures")
+    ap.add_argument("--stack-only", action="store_true",
+                    help="only the modifier-stack figures (benchmarks/stack_benchmark.py)")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     if not sizes or args.repeat < 1:
@@ -590,6 +593,10 @@ def main(argv=None):
     use_blender = not args.no_blender
     if use_blender:
         _harness().isolate_user_resources()   # before bpy is imported: the extension installs there
+    if args.stack_only:
+        if not use_blender:
+            ap.error("--stack-only needs Blender")
+        return stack_main(args)
 
     t0 = time.perf_counter()
     env = environment(use_blender)
@@ -604,6 +611,7 @@ def main(argv=None):
     gpu = gpu_figures([s for s in sizes if s >= 7], args.repeat) if use_blender and not args.no_gpu else None
     cages = None if args.no_cage else cage_figures(sizes, args.repeat)
     convergence = None if args.no_cage else cage_convergence()
+    stack = stack_figures() if use_blender and not args.no_stack else None
     report = {
         "benchmark": "vpffd",
         "lattice": {"shape": list(LATTICE_SHAPE), "interpolation": "BSPLINE", "bounds": [[-0.5] * 3, [0.5] * 3],
@@ -615,6 +623,7 @@ def main(argv=None):
         "gpu": gpu,
         "cages": cages,
         "cage_convergence": convergence,
+        "stack": stack,
         "total_seconds": None,
     }
     report["total_seconds"] = time.perf_counter() - t0
@@ -625,6 +634,52 @@ def main(argv=None):
             fh.write(text + "\n")
     if args.update_readme:
         update_readme(report)
+        if stack is not None:
+            update_stack_readme(stack)
+    log(f"done in {report['total_seconds']:.1f} s")
+    return 0
+
+
+def _install_extension():
+    _extension_engine()
+    return _EXTENSION["module"]
+
+
+def stack_figures():
+    from benchmarks import stack_benchmark
+    return stack_benchmark.run(_install_extension)
+
+
+def update_stack_readme(stack, path=os.path.join(_ROOT, "README.md")):
+    """Rewrite the modifier-stack table between its markers in README.md."""
+    from benchmarks import stack_benchmark
+    start, end = "<!-- stack-bench:start -->", "<!-- stack-bench:end -->"
+    with open(path) as fh:
+        text = fh.read()
+    if start not in text or end not in text:
+        raise SystemExit(f"{path} has no {start} ... {end} markers")
+    head, rest = text.split(start, 1)
+    _, tail = rest.split(end, 1)
+    env = environment(True)
+    body = (f"\n<!-- written by ./dev bench --stack-only --update-readme -->\n\nMeasured by `./dev bench "
+            f"--stack-only` on {datetime.date.today().isoformat()} with Blender {env['bpy']} (the `bpy` "
+            f"module), {env['cpu_count']} CPU cores.\n\n" + stack_benchmark.markdown(stack) + "\n")
+    with open(path, "w") as fh:
+        fh.write(head + start + body + end + tail)
+
+
+def stack_main(args):
+    t0 = time.perf_counter()
+    stack = stack_figures()
+    report = {"benchmark": "vpffd-stack", "environment": environment(True), "stack": stack,
+              "total_seconds": time.perf_counter() - t0}
+    text = json.dumps(report, indent=2)
+    print(text)
+    if args.out:
+        with open(args.out, "w") as fh:
+            fh.write(text + "\n")
+    if args.update_readme:
+        update_stack_readme(stack)
     log(f"done in {report['total_seconds']:.1f} s")
     return 0
 

@@ -1,0 +1,263 @@
+"""VP-FFD in the modifier stack: `scene.frame_set()` against Blender's Lattice modifier in the same
+slot, same process, for the ways things move in a shot.
+
+    ./dev bench --stack-only [--update-readme]      (also part of a plain ./dev bench)
+
+An icosphere of 163,842 vertices in a 6x6x6 B-spline lattice; VP-FFD corrects along XYZ. For each
+scenario two scenes are built (VP-FFD in the slot; a Lattice modifier in the slot), each stepped
+through FRAME_WARMUPS untimed frames and then FRAMES timed ones; the figure is the median frame
+time with its spread (min and max), and the ratio of the medians:
+- `lattice points`: a shape key of the lattice animates, nothing else moves;
+- `mesh moves`: the mesh object travels through the static lattice (it is re-embedded every frame);
+- `lattice moves`: the lattice object travels over the static mesh;
+- `armature`: an Armature modifier before the slot bends the mesh, and the lattice is parented to
+  the bending bone; compared with Armature + Lattice modifier. VP-FFD makes Blender evaluate the
+  object's stack twice per frame (once to read what reaches the slot, once with the offsets), so
+  the Armature-only frame time is printed too: it is what that second evaluation costs upstream.
+Also: `vp.bind` at 163,842 and 655,362 vertices, the Bind operator, and the first frame after an
+undo against an ordinary frame. A benchmark, not a test: it prints figures and exits 0.
+"""
+import math
+import os
+import statistics
+import sys
+import time
+
+import numpy as np
+
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if _ROOT not in sys.path:
+    sys.path.insert(0, _ROOT)
+
+import vpffd_addon as vp  # noqa: E402
+
+SUBDIVISIONS = 7          # 163,842 vertices
+LATTICE = (6, 6, 6)
+FRAMES = 12
+FRAME_WARMUPS = 3
+SCENARIOS = ("lattice points", "mesh moves", "lattice moves", "armature")
+
+
+def log(*args):
+    print(*args, file=sys.stderr, flush=True)
+
+
+def _spread(ms):
+    return {"median": statistics.median(ms), "min": min(ms), "max": max(ms)}
+
+
+def _mesh_object(bpy, verts, tris):
+    sys.path.insert(0, os.path.join(_ROOT, "tests"))
+    from blender_ref import triangle_mesh
+    ob = bpy.data.objects.new("Ball", triangle_mesh(verts, tris, "Ball"))
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+def _lattice(bpy):
+    lt = bpy.data.lattices.new("Lattice")
+    lt.points_u, lt.points_v, lt.points_w = LATTICE
+    for a in "uvw":
+        setattr(lt, f"interpolation_type_{a}", "KEY_BSPLINE")
+    ob = bpy.data.objects.new("Lattice", lt)
+    ob.scale = (1.0 / (LATTICE[0] - 1),) * 3          # spans [-0.5, 0.5]
+    bpy.context.scene.collection.objects.link(ob)
+    ob.shape_key_add(name="Basis")
+    key = ob.shape_key_add(name="Squash")
+    co = np.empty(len(lt.points) * 3, np.float32)
+    lt.points.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] *= 0.6
+    co[:, :2] *= 1.0 + 0.15 * np.cos(co[:, 2:3])
+    key.data.foreach_set("co", co.ravel())
+    return ob, key
+
+
+def _armature(bpy, lat_ob):
+    arm = bpy.data.armatures.new("Rig")
+    rig = bpy.data.objects.new("Rig", arm)
+    bpy.context.scene.collection.objects.link(rig)
+    bpy.context.view_layer.objects.active = rig
+    with bpy.context.temp_override(object=rig, active_object=rig, selected_objects=[rig]):
+        bpy.ops.object.mode_set(mode="EDIT")
+        lower = arm.edit_bones.new("Lower")
+        lower.head, lower.tail = (0, 0, -0.5), (0, 0, 0)
+        upper = arm.edit_bones.new("Upper")
+        upper.head, upper.tail = (0, 0, 0), (0, 0, 0.5)
+        upper.parent = lower
+        bpy.ops.object.mode_set(mode="OBJECT")
+    lat_ob.parent = rig
+    lat_ob.parent_type = "BONE"
+    lat_ob.parent_bone = "Upper"
+    lat_ob.location = (0, -0.5, 0)        # the bone's tail is the parent's origin: back to centre
+    return rig
+
+
+def _weights(bpy, ob):
+    n = len(ob.data.vertices)
+    co = np.empty(n * 3, np.float32)
+    ob.data.vertices.foreach_get("co", co)
+    t = np.clip((co[2::3] + 0.15) / 0.3, 0, 1)
+    for name, w in (("Lower", 1 - t), ("Upper", t)):
+        attr = ob.data.attributes.new(name, "FLOAT", "POINT")
+        attr.data.foreach_set("value", w.astype(np.float32))
+        ob.data.attributes.active = attr
+        with bpy.context.temp_override(object=ob, active_object=ob):
+            bpy.ops.geometry.attribute_convert(mode="VERTEX_GROUP")
+
+
+def _scene(bpy, eh, scenario, slot, verts, tris):
+    """Build one scene: `slot` is "vpffd", "lattice" or "none" (the Armature alone)."""
+    eh.reset_scene()
+    ob = _mesh_object(bpy, verts, tris)
+    lat_ob, key = _lattice(bpy)
+    last = FRAME_WARMUPS + FRAMES + 2
+    if scenario == "lattice points":
+        for f, v in ((1, 0.0), (last, 1.0)):
+            key.value = v
+            key.keyframe_insert("value", frame=f)
+    else:
+        key.value = 0.7
+        mover = {"mesh moves": ob, "lattice moves": lat_ob}.get(scenario)
+        if mover is not None:
+            for f, x in ((1, -0.3), (last, 0.3)):
+                mover.location = (x, 0.05 * x, 0)
+                mover.keyframe_insert("location", frame=f)
+        if scenario == "armature":
+            rig = _armature(bpy, lat_ob)
+            _weights(bpy, ob)
+            ob.modifiers.new("Armature", "ARMATURE").object = rig
+            pose = rig.pose.bones["Upper"]
+            pose.rotation_mode = "XYZ"
+            for f, a in ((1, 0.0), (last, math.radians(60))):
+                pose.rotation_euler = (a, 0, 0)
+                pose.keyframe_insert("rotation_euler", frame=f)
+    if slot == "lattice":
+        ob.modifiers.new("Lattice", "LATTICE").object = lat_ob
+    elif slot == "vpffd":
+        ob.vpffd.lattice = lat_ob
+        ob.vpffd.axes = "XYZ"
+        bpy.context.scene.frame_set(1)
+        with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+            if bpy.ops.object.vpffd_bind() != {"FINISHED"}:
+                raise RuntimeError("binding failed")
+    return ob
+
+
+def _frames(bpy, engine=None, ob=None):
+    scene = bpy.context.scene
+    scene.frame_set(1)
+    for f in range(2, FRAME_WARMUPS + 2):
+        scene.frame_set(f)
+    wall, update = [], []
+    for f in range(FRAME_WARMUPS + 2, FRAME_WARMUPS + FRAMES + 2):
+        t0 = time.perf_counter()
+        scene.frame_set(f)
+        wall.append((time.perf_counter() - t0) * 1e3)
+        if engine is not None:
+            info = engine.stats(ob)
+            if info.get("error"):
+                raise RuntimeError(info["error"])
+            update.append(info["seconds"] * 1e3)
+    return wall, update
+
+
+def frame_set_figures(bpy, eh, engine, verts, tris):
+    rows = []
+    for scenario in SCENARIOS:
+        row = {"scenario": scenario}
+        ob = _scene(bpy, eh, scenario, "lattice", verts, tris)
+        row["lattice_modifier_ms"] = _spread(_frames(bpy)[0])
+        ob = _scene(bpy, eh, scenario, "vpffd", verts, tris)
+        wall, update = _frames(bpy, engine, ob)
+        row["vpffd_ms"] = _spread(wall)
+        row["vpffd_update_ms"] = _spread(update)
+        row["volume_percent"] = engine.stats(ob)["volume_percent"]
+        if scenario == "armature":
+            _scene(bpy, eh, scenario, "none", verts, tris)
+            row["armature_only_ms"] = _spread(_frames(bpy)[0])
+        row["ratio"] = row["vpffd_ms"]["median"] / row["lattice_modifier_ms"]["median"]
+        log(f"  {scenario}: VP-FFD {row['vpffd_ms']['median']:.1f} ms, Lattice modifier "
+            f"{row['lattice_modifier_ms']['median']:.1f} ms, ratio {row['ratio']:.2f}")
+        rows.append(row)
+    return rows
+
+
+def bind_figures(bpy, eh, engine, handlers):
+    out = {}
+    lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    for sub in (7, 8):
+        v, f = vp.icosphere(sub, 0.45)
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            vp.bind(lat, v, f, dtype=np.float32)
+            times.append((time.perf_counter() - t0) * 1e3)
+        out[f"vp_bind_ms_{len(v)}"] = min(times)
+        log(f"  vp.bind {len(v):,} vertices: {min(times):.0f} ms (best of 3)")
+    v, f = vp.icosphere(SUBDIVISIONS, 0.45)
+    ob = _scene(bpy, eh, "lattice points", "none", v, f)
+    ob.vpffd.lattice = bpy.data.objects["Lattice"]
+    ob.vpffd.axes = "XYZ"
+    t0 = time.perf_counter()
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        bpy.ops.object.vpffd_bind()
+    out["bind_operator_ms"] = (time.perf_counter() - t0) * 1e3
+    log(f"  Bind operator {len(v):,} vertices: {out['bind_operator_ms']:.0f} ms")
+    scene = bpy.context.scene
+    ordinary = []
+    for frame in (5, 6, 7, 8):
+        t0 = time.perf_counter()
+        scene.frame_set(frame)
+        ordinary.append((time.perf_counter() - t0) * 1e3)
+    handlers.on_undo()            # what Blender calls after an undo step
+    t0 = time.perf_counter()
+    scene.frame_set(8)
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    engine.update(ob, depsgraph)
+    out["first_frame_after_undo_ms"] = (time.perf_counter() - t0) * 1e3
+    out["ordinary_frame_ms"] = statistics.median(ordinary)
+    log(f"  first frame after undo {out['first_frame_after_undo_ms']:.0f} ms, ordinary frame "
+        f"{out['ordinary_frame_ms']:.0f} ms")
+    return out
+
+
+def run(engine_module_loader):
+    """Run every figure; `engine_module_loader()` installs the extension and returns its module."""
+    import importlib
+
+    import bpy
+    sys.path.insert(0, os.path.join(_ROOT, "tests"))
+    import extension_harness as eh
+    module = engine_module_loader()
+    engine = importlib.import_module(module + ".operators.engine")
+    handlers = importlib.import_module(module + ".operators.handlers")
+    verts, tris = vp.icosphere(SUBDIVISIONS, 0.45)
+    log(f"stack benchmark: {len(verts):,} vertices, {LATTICE} B-spline lattice, XYZ, "
+        f"{FRAMES} frames after {FRAME_WARMUPS} warm-up frames")
+    report = {"vertices": len(verts), "lattice": list(LATTICE), "frames": FRAMES,
+              "warmups": FRAME_WARMUPS, "frame_set": frame_set_figures(bpy, eh, engine, verts, tris),
+              "bind": bind_figures(bpy, eh, engine, handlers)}
+    eh.reset_scene()
+    return report
+
+
+def markdown(report):
+    rows = ["| scenario | Lattice modifier, ms (min-max) | VP-FFD XYZ, ms (min-max) | ratio | VP-FFD's own update, ms |",
+            "|---|---|---|---|---|"]
+    for r in report["frame_set"]:
+        lm, vf, up = r["lattice_modifier_ms"], r["vpffd_ms"], r["vpffd_update_ms"]
+        name = r["scenario"]
+        if "armature_only_ms" in r:
+            name += f" (Armature alone: {r['armature_only_ms']['median']:.1f} ms, paid twice by VP-FFD)"
+        rows.append(f"| {name} | {lm['median']:.1f} ({lm['min']:.1f}-{lm['max']:.1f}) | "
+                    f"{vf['median']:.1f} ({vf['min']:.1f}-{vf['max']:.1f}) | {r['ratio']:.2f}x | "
+                    f"{up['median']:.1f} |")
+    b = report["bind"]
+    binds = ", ".join(f"{int(k.rsplit('_', 1)[1]):,} vertices {v:.0f} ms" for k, v in b.items()
+                      if k.startswith("vp_bind_ms_"))
+    rows.append("")
+    rows.append(f"`vp.bind`: {binds}; the Bind operator at {report['vertices']:,} vertices: "
+                f"{b['bind_operator_ms']:.0f} ms. First frame after an undo: "
+                f"{b['first_frame_after_undo_ms']:.0f} ms (an ordinary frame: {b['ordinary_frame_ms']:.0f} ms).")
+    return "\n".join(rows)

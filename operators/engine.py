@@ -363,6 +363,10 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         state = _cache.get(uid)
         if state is None:
             state = _cache[uid] = _Bound()
+        extra = modifier.find_all(obj)[1:]
+        if extra:
+            raise ValueError(f"one VP-FFD modifier per object: remove "
+                             f"{', '.join(repr(m.name) for m in extra)}")
         if depsgraph.mode != "RENDER":
             modifier.sync_inputs(obj, mod)
             helper = modifier.helper(obj, mod, exclusive_of=helpers_taken or ())
@@ -672,6 +676,32 @@ def unbind(obj):
     obj.vpffd.is_bound = False
     forget(obj)
     mesh.update_tag()
+
+
+def save_shape_key(obj, depsgraph, name="VP-FFD"):
+    """Add a shape key holding what the VP-FFD slot gives on the current frame (Blender cannot
+    apply a Geometry Nodes modifier as a shape key). Returns (key name, names of the enabled
+    modifiers before VP-FFD, whose effect the key then includes)."""
+    mesh = obj.data
+    mod = modifier.find(obj)
+    if mod is None:
+        raise BindError("the VP-FFD modifier was removed: Bind again, or Unbind")
+    update(obj, depsgraph, force=True)
+    info = stats(obj)
+    if info.get("error"):
+        raise BindError(info["error"])
+    co = slot_output(obj)
+    if co is None or len(co) != len(mesh.vertices):
+        raise BindError(f"{0 if co is None else len(co)} points reach VP-FFD but the mesh has "
+                        f"{len(mesh.vertices)} vertices: a shape key needs one position per vertex")
+    before = [m.name for m in obj.modifiers[:list(obj.modifiers).index(mod)] if m.show_viewport]
+    co = co.copy()
+    if mesh.shape_keys is None:
+        obj.shape_key_add(name="Basis", from_mix=False)
+    key = obj.shape_key_add(name=name, from_mix=False)
+    key.data.foreach_set("co", co.astype(np.float32).ravel())
+    mesh.update()
+    return key.name, before
 
 
 def apply(obj, depsgraph):

@@ -164,12 +164,16 @@ def sync_inputs(obj, mod=None):
     set_input(mod, INVERT_INPUT, bool(s.invert_vertex_group and s.vertex_group))
 
 
+def find_all(obj):
+    """Every VP-FFD modifier of the object (one is supported; a duplicated one is reported)."""
+    return [m for m in obj.modifiers
+            if m.type == "NODES" and m.node_group is not None and m.node_group.get(_TAG)]
+
+
 def find(obj):
-    """The object's VP-FFD modifier, or None."""
-    for m in obj.modifiers:
-        if m.type == "NODES" and m.node_group is not None and m.node_group.get(_TAG):
-            return m
-    return None
+    """The object's VP-FFD modifier (the first, if there are several), or None."""
+    found = find_all(obj)
+    return found[0] if found else None
 
 
 def ensure(obj):

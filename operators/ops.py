@@ -63,6 +63,31 @@ class OBJECT_OT_vpffd_apply(_ObjectOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class OBJECT_OT_vpffd_save_shape_key(_ObjectOperator, bpy.types.Operator):
+    """Save what VP-FFD gives on this frame as a new shape key of the mesh, keeping the modifier
+    (Blender's own Save as Shape Key does not work on a Geometry Nodes modifier)"""
+    bl_idname = "object.vpffd_save_shape_key"
+    bl_label = "Save as Shape Key"
+
+    @classmethod
+    def poll(cls, context):
+        return super().poll(context) and context.object.vpffd.is_bound
+
+    def execute(self, context):
+        ob = context.object
+        try:
+            name, before = engine.save_shape_key(ob, context.evaluated_depsgraph_get())
+        except (engine.BindError, ValueError) as exc:
+            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            return {"CANCELLED"}
+        if before:
+            self.report({"WARNING"}, f"VP-FFD: shape key '{name}' includes the modifiers before "
+                                     f"VP-FFD ({', '.join(before)})")
+        else:
+            self.report({"INFO"}, f"VP-FFD: saved shape key '{name}'")
+        return {"FINISHED"}
+
+
 class OBJECT_OT_vpffd_check_folds(_ObjectOperator, bpy.types.Operator):
     """Count the vertices where the lattice folds space (Jacobian determinant <= 0)"""
     bl_idname = "object.vpffd_check_folds"
@@ -84,4 +109,4 @@ class OBJECT_OT_vpffd_check_folds(_ObjectOperator, bpy.types.Operator):
 
 
 classes = (OBJECT_OT_vpffd_bind, OBJECT_OT_vpffd_unbind, OBJECT_OT_vpffd_apply,
-           OBJECT_OT_vpffd_check_folds)
+           OBJECT_OT_vpffd_save_shape_key, OBJECT_OT_vpffd_check_folds)

@@ -59,6 +59,7 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
             row.operator("object.vpffd_bind", text="Re-bind", icon="FILE_REFRESH")
             row.operator("object.vpffd_apply", icon="CHECKMARK")
             row.operator("object.vpffd_unbind", icon="X")
+            layout.operator("object.vpffd_save_shape_key", icon="SHAPEKEY_DATA")
             if modifier.find(ob) is not None and not bake.using_cache(ob):
                 layout.prop(s, "enabled")     # on the cache, "Use Live" switches back instead
             layout.prop(s, "show_overlay")
@@ -89,7 +90,7 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
         if info.get("switched_off"):
             box.label(text="The VP-FFD modifier is switched off in the viewport", icon="HIDE_ON")
         if "volume_percent" in info:
-            box.label(text=f"Volume {info['volume_percent']:.4f}% of rest "
+            box.label(text=f"Volume {info['volume_percent']:.4f}% of its input "
                            f"(plain lattice: {info['plain_percent']:.2f}%)")
         if "seconds" in info:
             box.label(text=f"Solve {1e3 * info['seconds']:.1f} ms on the {info.get('backend', 'CPU')}, "

@@ -402,3 +402,36 @@ def test_undo_keeps_the_binding(ext):
     ext.module.operators.handlers.on_undo()
     assert eng._cache[ob.session_uid].binding is binding
     assert eng.stats(ob).get("rebound") is False
+
+
+def test_save_as_shape_key_holds_the_slots_result(ext):
+    """Blender cannot apply a Geometry Nodes modifier as a shape key: VP-FFD's own operator saves
+    the current result; the key, at value 1 with VP-FFD switched off, shows the same shape."""
+    lat = _lattice()
+    ob = _object("Ball")
+    assert _bind(ob, lattice=lat, axes="XY") == {"FINISHED"}
+    bpy.context.scene.frame_set(14)
+    shown, _ = _evaluated(ob)
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        assert bpy.ops.object.vpffd_save_shape_key() == {"FINISHED"}
+    key = ob.data.shape_keys.key_blocks["VP-FFD"]
+    key.value = 1.0
+    ob.vpffd.enabled = False
+    keyed, _ = _evaluated(ob)
+    assert np.abs(keyed - shown).max() <= 1e-6 * np.ptp(shown, 0).max()
+    assert np.abs(keyed - _evaluated(_input_twin("none"))[0]).max() > 0.05
+
+
+def test_a_duplicated_vpffd_modifier_is_reported_and_nothing_is_applied_twice(ext):
+    lat = _lattice()
+    ob = _object("Ball")
+    source = _input_twin("none")
+    assert _bind(ob, lattice=lat, axes="XYZ") == {"FINISHED"}
+    with bpy.context.temp_override(object=ob, active_object=ob):
+        assert bpy.ops.object.modifier_copy(modifier=ob.modifiers[-1].name) == {"FINISHED"}
+    bpy.context.scene.frame_set(14)
+    assert "one VP-FFD modifier per object" in _engine(ext).stats(ob)["error"]
+    np.testing.assert_array_equal(_evaluated(ob)[0], _evaluated(source)[0])
+    ob.modifiers.remove(ob.modifiers[-1])
+    bpy.context.scene.frame_set(15)
+    assert _engine(ext).stats(ob).get("error") is None

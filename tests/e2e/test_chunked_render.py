@@ -17,9 +17,11 @@ switched off).
 
 The scene (built once, extension installed in the chroot's Blender, bound, saved at frame 10 so the
 offsets stored in the file belong to no chunk's first frame): an icosphere of 2,562 vertices in a
-4x4x4 lattice with three independent animations, on different keys, so that every frame differs:
-a lattice shape key (squash and twist), the VP-FFD Volume Scale, and the lattice object's location
-and rotation relative to the mesh (so the binding is rebuilt on every frame).
+4x4x4 lattice with independent animations, on different keys, so that every frame differs: an
+Armature before VP-FFD bending the sphere's upper half, a lattice shape key (squash and twist), the
+VP-FFD Volume Scale, the lattice object's location and rotation, and the sphere object travelling
+through the lattice (so the input is embedded anew on every frame). `-f 1` alone checks the first
+frame of the animation render started from the saved frame 10 against a single-frame render.
 
 test_chunks_render_what_one_process_renders: the identity above, and that the frames really differ.
 test_rendered_volume_follows_animated_volume_scale: the reference render is right, not just
@@ -55,6 +57,7 @@ RUNS = {
     "reverse": ["-f", ",".join(str(f) for f in reversed(FRAMES))],
     "only17": ["-f", "17"],
     "only3": ["-f", "3"],
+    "only1": ["-f", "1"],
 }
 EXPECTED_ORDER = {
     "single": FRAMES,
@@ -65,6 +68,7 @@ EXPECTED_ORDER = {
     "reverse": FRAMES[::-1],
     "only17": [17],
     "only3": [3],
+    "only1": [1],
 }
 
 # ---------------------------------------------------------------- scripts run inside Blender ---
@@ -107,6 +111,38 @@ me.calc_loop_triangles()
 tris = np.empty(len(me.loop_triangles) * 3, np.int32)
 me.loop_triangles.foreach_get("vertices", tris)
 tris.tofile("measure/tris.i32")
+
+# 0. An Armature before VP-FFD bends the sphere's upper half (the slot's input changes every
+#    frame), and the sphere object travels through the lattice.
+arm = bpy.data.armatures.new("Rig")
+rig = bpy.data.objects.new("Rig", arm)
+scene.collection.objects.link(rig)
+bpy.context.view_layer.objects.active = rig
+with bpy.context.temp_override(object=rig, active_object=rig, selected_objects=[rig]):
+    bpy.ops.object.mode_set(mode="EDIT")
+    lower = arm.edit_bones.new("Lower")
+    lower.head, lower.tail = (0.0, 0.0, -1.0), (0.0, 0.0, 0.0)
+    upper = arm.edit_bones.new("Upper")
+    upper.head, upper.tail = (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+    upper.parent = lower
+    bpy.ops.object.mode_set(mode="OBJECT")
+pose = rig.pose.bones["Upper"]
+pose.rotation_mode = "XYZ"
+for frame, angle in ((1, 0.0), (13, 0.7), (24, 0.3)):
+    pose.rotation_euler = (angle, 0.0, 0.0)
+    pose.keyframe_insert("rotation_euler", frame=frame)
+groups = [sphere.vertex_groups.new(name=n) for n in ("Lower", "Upper")]
+for v in me.vertices:
+    t = min(1.0, max(0.0, (v.co.z + 0.3) / 0.6))
+    groups[0].add([v.index], 1.0 - t, "REPLACE")
+    groups[1].add([v.index], t, "REPLACE")
+sphere.modifiers.new("Armature", "ARMATURE").object = rig
+for frame, loc in ((1, (-0.15, 0.0, 0.0)), (24, (0.15, 0.05, -0.1))):
+    sphere.location = loc
+    sphere.keyframe_insert("location", frame=frame)
+# The same object without VP-FFD: its evaluated volume is what reaches VP-FFD's slot.
+source = sphere.copy()
+scene.collection.objects.link(source)
 
 # 1. A lattice shape key: squash in z, widen in x and y, twist about z (more with height).
 lattice.shape_key_add(name="Basis", from_mix=False)
@@ -167,9 +203,26 @@ for name in dir(r):
         except (AttributeError, TypeError):
             pass
 
+def _source_volume():
+    ev = source.evaluated_get(bpy.context.evaluated_depsgraph_get())
+    m = ev.to_mesh()
+    try:
+        co = np.empty(len(m.vertices) * 3, np.float32)
+        m.vertices.foreach_get("co", co)
+    finally:
+        ev.to_mesh_clear()
+    p = co.reshape(-1, 3).astype(np.float64)[tris.reshape(-1, 3)]
+    return float(np.einsum("ij,ij->", p[:, 0], np.cross(p[:, 1], p[:, 2])) / 6.0)
+
+
+input_volume = {}
+for frame in range(1, 25):
+    scene.frame_set(frame)
+    input_volume[str(frame)] = _source_volume()
+bpy.data.objects.remove(source)
 scene.frame_set(saved_frame)
 with open("measure/scene.json", "w") as f:
-    json.dump({"volume_scale": volume_scale, "n_verts": len(me.vertices),
+    json.dump({"volume_scale": volume_scale, "input_volume": input_volume, "n_verts": len(me.vertices),
                "blender": bpy.app.version_string}, f, indent=1)
 bpy.ops.wm.save_as_mainfile(filepath=out_blend)
 print("VPFFD_E2E_SAVED", out_blend)
@@ -328,11 +381,13 @@ def test_chunks_render_what_one_process_renders(renders):
 @pytest.mark.e2e
 def test_rendered_volume_follows_animated_volume_scale(renders):
     # Identical chunks are worth little if every process renders the same wrong thing: each
-    # rendered frame must keep the rest volume times that frame's animated Volume Scale (float32
-    # solve), whatever frame the file was saved at (SAVED_FRAME).
+    # rendered frame must keep the volume that reaches VP-FFD's slot on that frame (after the
+    # bending Armature, measured on a twin without VP-FFD) times that frame's animated Volume
+    # Scale (float32 solve), whatever frame the file was saved at (SAVED_FRAME).
     tris, scale = renders["tris"], renders["scene"]["volume_scale"]
-    rest = _volume(renders["rest"], tris)
-    ratios = {f: _volume(np.frombuffer(renders["coords"]["single", f], np.float32), tris) / rest
+    source = renders["scene"]["input_volume"]
+    assert max(source.values()) - min(source.values()) > 0, "the Armature changes the input"
+    ratios = {f: _volume(np.frombuffer(renders["coords"]["single", f], np.float32), tris) / source[str(f)]
               for f in FRAMES}
     wrong = ["frame %d: volume %.5f x rest, Volume Scale %.5f" % (f, ratios[f], scale[str(f)])
              for f in FRAMES if abs(ratios[f] - scale[str(f)]) > 2e-5 * scale[str(f)]]

@@ -627,17 +627,22 @@ def main(argv=None):
         "total_seconds": None,
     }
     report["total_seconds"] = time.perf_counter() - t0
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as fh:
-            fh.write(text + "\n")
+    _emit(report, args.out)
     if args.update_readme:
         update_readme(report)
         if stack is not None:
             update_stack_readme(stack)
     log(f"done in {report['total_seconds']:.1f} s")
     return 0
+
+
+def _emit(report, out):
+    """The JSON report to stdout, and to the file `out` when given."""
+    text = json.dumps(report, indent=2)
+    print(text)
+    if out:
+        with open(out, "w") as fh:
+            fh.write(text + "\n")
 
 
 def _install_extension():
@@ -673,11 +678,7 @@ def stack_main(args):
     stack = stack_figures()
     report = {"benchmark": "vpffd-stack", "environment": environment(True), "stack": stack,
               "total_seconds": time.perf_counter() - t0}
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out:
-        with open(args.out, "w") as fh:
-            fh.write(text + "\n")
+    _emit(report, args.out)
     if args.update_readme:
         update_stack_readme(stack)
     log(f"done in {report['total_seconds']:.1f} s")

@@ -14,10 +14,10 @@ time with its spread (min and max), and the ratio of the medians:
   the bending bone; compared with Armature + Lattice modifier. VP-FFD makes Blender evaluate the
   object's stack twice per frame (once to read what reaches the slot, once with the offsets), so
   the Armature-only frame time is printed too: it is what that second evaluation costs upstream.
+And the mesh moving through a 20-cell box cage (depth 3), whose binding is rebuilt every frame.
 Also: `vp.bind` at 163,842 and 655,362 vertices, the Bind operator, and the first frame after an
 undo against an ordinary frame. A benchmark, not a test: it prints figures and exits 0.
 """
-import math
 import os
 import statistics
 import sys
@@ -36,6 +36,7 @@ LATTICE = (6, 6, 6)
 FRAMES = 12
 FRAME_WARMUPS = 3
 SCENARIOS = ("lattice points", "mesh moves", "lattice moves", "armature")
+CAGE_FRAMES = 4
 
 
 def log(*args):
@@ -73,39 +74,6 @@ def _lattice(bpy):
     return ob, key
 
 
-def _armature(bpy, lat_ob):
-    arm = bpy.data.armatures.new("Rig")
-    rig = bpy.data.objects.new("Rig", arm)
-    bpy.context.scene.collection.objects.link(rig)
-    bpy.context.view_layer.objects.active = rig
-    with bpy.context.temp_override(object=rig, active_object=rig, selected_objects=[rig]):
-        bpy.ops.object.mode_set(mode="EDIT")
-        lower = arm.edit_bones.new("Lower")
-        lower.head, lower.tail = (0, 0, -0.5), (0, 0, 0)
-        upper = arm.edit_bones.new("Upper")
-        upper.head, upper.tail = (0, 0, 0), (0, 0, 0.5)
-        upper.parent = lower
-        bpy.ops.object.mode_set(mode="OBJECT")
-    lat_ob.parent = rig
-    lat_ob.parent_type = "BONE"
-    lat_ob.parent_bone = "Upper"
-    lat_ob.location = (0, -0.5, 0)        # the bone's tail is the parent's origin: back to centre
-    return rig
-
-
-def _weights(bpy, ob):
-    n = len(ob.data.vertices)
-    co = np.empty(n * 3, np.float32)
-    ob.data.vertices.foreach_get("co", co)
-    t = np.clip((co[2::3] + 0.15) / 0.3, 0, 1)
-    for name, w in (("Lower", 1 - t), ("Upper", t)):
-        attr = ob.data.attributes.new(name, "FLOAT", "POINT")
-        attr.data.foreach_set("value", w.astype(np.float32))
-        ob.data.attributes.active = attr
-        with bpy.context.temp_override(object=ob, active_object=ob):
-            bpy.ops.geometry.attribute_convert(mode="VERTEX_GROUP")
-
-
 def _scene(bpy, eh, scenario, slot, verts, tris):
     """Build one scene: `slot` is "vpffd", "lattice" or "none" (the Armature alone)."""
     eh.reset_scene()
@@ -124,14 +92,14 @@ def _scene(bpy, eh, scenario, slot, verts, tris):
                 mover.location = (x, 0.05 * x, 0)
                 mover.keyframe_insert("location", frame=f)
         if scenario == "armature":
-            rig = _armature(bpy, lat_ob)
-            _weights(bpy, ob)
+            from blender_ref import bone_weights_by_height, two_bone_armature
+            rig = two_bone_armature("Rig", 0.5, frames=(1, last))
+            lat_ob.parent = rig
+            lat_ob.parent_type = "BONE"
+            lat_ob.parent_bone = "Upper"
+            lat_ob.location = (0, -0.5, 0)    # the bone's tail is the parent's origin: back to centre
+            bone_weights_by_height(ob, 0.15)
             ob.modifiers.new("Armature", "ARMATURE").object = rig
-            pose = rig.pose.bones["Upper"]
-            pose.rotation_mode = "XYZ"
-            for f, a in ((1, 0.0), (last, math.radians(60))):
-                pose.rotation_euler = (a, 0, 0)
-                pose.keyframe_insert("rotation_euler", frame=f)
     if slot == "lattice":
         ob.modifiers.new("Lattice", "LATTICE").object = lat_ob
     elif slot == "vpffd":
@@ -160,6 +128,42 @@ def _frames(bpy, engine=None, ob=None):
                 raise RuntimeError(info["error"])
             update.append(info["seconds"] * 1e3)
     return wall, update
+
+
+def cage_figures(bpy, eh, engine, cage_module, verts, tris):
+    """The mesh moving through a static 20-cell box cage (depth 3): a cage binding is rebuilt on
+    every frame. No Blender modifier to compare with: the Lattice modifier's scene is given for
+    scale."""
+    cage = vp.box_cage((2, 2, 5), ((-0.5,) * 3, (0.5,) * 3))
+    eh.reset_scene()
+    ob = _mesh_object(bpy, verts, tris)
+    cage_ob = cage_module.cage_object("Cage", cage.points, cage.cells)
+    bpy.context.scene.collection.objects.link(cage_ob)
+    last = FRAME_WARMUPS + CAGE_FRAMES + 2
+    for f, x in ((1, -0.1), (last, 0.1)):
+        ob.location = (x, 0.02 * x, 0)
+        ob.keyframe_insert("location", frame=f)
+    ob.vpffd.lattice = cage_ob
+    ob.vpffd.axes = "XYZ"
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        if bpy.ops.object.vpffd_bind() != {"FINISHED"}:
+            raise RuntimeError("binding to the cage failed")
+    scene = bpy.context.scene
+    for f in range(1, FRAME_WARMUPS + 2):
+        scene.frame_set(f)
+    wall, update = [], []
+    for f in range(FRAME_WARMUPS + 2, last):
+        t0 = time.perf_counter()
+        scene.frame_set(f)
+        wall.append((time.perf_counter() - t0) * 1e3)
+        info = engine.stats(ob)
+        if info.get("error"):
+            raise RuntimeError(info["error"])
+        update.append(info["seconds"] * 1e3)
+    row = {"scenario": "mesh moves through a 20-cell cage (depth 3)", "vpffd_ms": _spread(wall),
+           "vpffd_update_ms": _spread(update), "volume_percent": engine.stats(ob)["volume_percent"]}
+    log(f"  cage, mesh moves: {row['vpffd_ms']['median']:.0f} ms per frame")
+    return row
 
 
 def frame_set_figures(bpy, eh, engine, verts, tris):
@@ -232,11 +236,13 @@ def run(engine_module_loader):
     module = engine_module_loader()
     engine = importlib.import_module(module + ".operators.engine")
     handlers = importlib.import_module(module + ".operators.handlers")
+    cage_module = importlib.import_module(module + ".operators.cage")
     verts, tris = vp.icosphere(SUBDIVISIONS, 0.45)
     log(f"stack benchmark: {len(verts):,} vertices, {LATTICE} B-spline lattice, XYZ, "
         f"{FRAMES} frames after {FRAME_WARMUPS} warm-up frames")
     report = {"vertices": len(verts), "lattice": list(LATTICE), "frames": FRAMES,
               "warmups": FRAME_WARMUPS, "frame_set": frame_set_figures(bpy, eh, engine, verts, tris),
+              "cage": cage_figures(bpy, eh, engine, cage_module, verts, tris),
               "bind": bind_figures(bpy, eh, engine, handlers)}
     eh.reset_scene()
     return report
@@ -253,6 +259,11 @@ def markdown(report):
         rows.append(f"| {name} | {lm['median']:.1f} ({lm['min']:.1f}-{lm['max']:.1f}) | "
                     f"{vf['median']:.1f} ({vf['min']:.1f}-{vf['max']:.1f}) | {r['ratio']:.2f}x | "
                     f"{up['median']:.1f} |")
+    c = report.get("cage")
+    if c:
+        rows.append(f"| {c['scenario']} | (no such modifier) | {c['vpffd_ms']['median']:.0f} "
+                    f"({c['vpffd_ms']['min']:.0f}-{c['vpffd_ms']['max']:.0f}) | | "
+                    f"{c['vpffd_update_ms']['median']:.0f} |")
     b = report["bind"]
     binds = ", ".join(f"{int(k.rsplit('_', 1)[1]):,} vertices {v:.0f} ms" for k, v in b.items()
                       if k.startswith("vp_bind_ms_"))

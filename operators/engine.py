@@ -678,6 +678,17 @@ def unbind(obj):
     mesh.update_tag()
 
 
+def _enabled_before(obj, mod):
+    """Names of the modifiers enabled in the viewport that come before `mod` in obj's stack."""
+    names = []
+    for m in obj.modifiers:
+        if m == mod:
+            break
+        if m.show_viewport:
+            names.append(m.name)
+    return names
+
+
 def save_shape_key(obj, depsgraph, name="VP-FFD"):
     """Add a shape key holding what the VP-FFD slot gives on the current frame (Blender cannot
     apply a Geometry Nodes modifier as a shape key). Returns (key name, names of the enabled
@@ -694,7 +705,7 @@ def save_shape_key(obj, depsgraph, name="VP-FFD"):
     if co is None or len(co) != len(mesh.vertices):
         raise BindError(f"{0 if co is None else len(co)} points reach VP-FFD but the mesh has "
                         f"{len(mesh.vertices)} vertices: a shape key needs one position per vertex")
-    before = [m.name for m in obj.modifiers[:list(obj.modifiers).index(mod)] if m.show_viewport]
+    before = _enabled_before(obj, mod)
     co = co.copy()
     if mesh.shape_keys is None:
         obj.shape_key_add(name="Basis", from_mix=False)
@@ -714,12 +725,7 @@ def apply(obj, depsgraph):
     mod = modifier.find(obj)
     if mod is not None and not mod.show_viewport:
         raise BindError("the VP-FFD modifier is switched off: switch it on to apply, or Unbind")
-    before = []
-    for m in obj.modifiers:
-        if m == mod:
-            break
-        if m.show_viewport:
-            before.append(m.name)
+    before = _enabled_before(obj, mod)
     if before:
         raise BindError(f"modifiers before VP-FFD ({', '.join(before)}) would be applied with it: "
                         "apply them first, or move VP-FFD to the top")

@@ -18,6 +18,8 @@ What was measured with bpy 5.0.1 (the tests in test_blender_parity.py check it a
   coordinates; the result matches a float64 evaluation of the formula to ~1e-6 of the lattice size.
 """
 
+import math
+
 import bpy
 import mathutils
 import numpy as np
@@ -65,20 +67,21 @@ def triangle_mesh(verts, tris, name=_PREFIX + "mesh"):
     return me
 
 
-def _add_vertex_group(ob, weights):
-    """Vertex group from weights (V,) without a per-vertex Python loop.
+def _add_vertex_group(ob, weights, name=None):
+    """Vertex group from weights (V,) without a per-vertex Python loop; returns its name.
 
     A float point attribute converted by the operator; weight-0 vertices end up unassigned,
     which Blender treats as weight 0 (checked)."""
     me = ob.data
-    attr = me.attributes.new(_PREFIX + "weights", "FLOAT", "POINT")
-    attr.data.foreach_set("value", weights.astype(np.float32))
+    before = len(ob.vertex_groups)
+    attr = me.attributes.new(name or (_PREFIX + "weights"), "FLOAT", "POINT")
+    attr.data.foreach_set("value", np.asarray(weights, np.float32))
     me.attributes.active = attr
     with bpy.context.temp_override(object=ob, active_object=ob):
         result = bpy.ops.geometry.attribute_convert(mode="VERTEX_GROUP")
-    if result != {"FINISHED"} or len(ob.vertex_groups) != 1:
+    if result != {"FINISHED"} or len(ob.vertex_groups) != before + 1:
         raise RuntimeError("could not convert the weights into a vertex group")
-    return ob.vertex_groups[0].name
+    return ob.vertex_groups[-1].name
 
 
 def lattice_modifier_reference(verts, tris, shape, interpolation, deformed_points=None, *,
@@ -154,3 +157,58 @@ def lattice_modifier_reference(verts, tris, shape, interpolation, deformed_point
         "verts_in": _get_vec3(me.vertices, "co", len(verts)),
         "execution_time": float(ob_eval.modifiers[0].execution_time),
     }
+
+
+def evaluated_world(ob):
+    """(world coords (V, 3) float64 of the float32 evaluated mesh of `ob`, tris (F, 3))."""
+    dg = bpy.context.evaluated_depsgraph_get()
+    ev = ob.evaluated_get(dg)
+    me = ev.data
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    me.calc_loop_triangles()
+    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
+    me.loop_triangles.foreach_get("vertices", tris)
+    M = np.array(ev.matrix_world, dtype=np.float64)
+    co = co.reshape(-1, 3).astype(np.float64)
+    return co @ M[:3, :3].T + M[:3, 3], tris.reshape(-1, 3)
+
+
+def evaluated_volume(ob):
+    """Volume of the evaluated mesh, independently: 1/6 sum a . (b x c) over its triangles."""
+    co, tris = evaluated_world(ob)
+    a, b, c = co[tris[:, 0]], co[tris[:, 1]], co[tris[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def two_bone_armature(name="Rig", half_length=1.0, bend=math.radians(60), frames=(1, 20)):
+    """An armature object of two bones along +Z ("Lower" ending and "Upper" starting at the
+    origin, each `half_length` long), linked to the scene; "Upper" bends about X from 0 at
+    frames[0] to `bend` at frames[1]."""
+    arm = bpy.data.armatures.new(name)
+    ob = bpy.data.objects.new(name, arm)
+    bpy.context.scene.collection.objects.link(ob)
+    bpy.context.view_layer.objects.active = ob
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        bpy.ops.object.mode_set(mode="EDIT")
+        lower = arm.edit_bones.new("Lower")
+        lower.head, lower.tail = (0, 0, -half_length), (0, 0, 0)
+        upper = arm.edit_bones.new("Upper")
+        upper.head, upper.tail = (0, 0, 0), (0, 0, half_length)
+        upper.parent = lower
+        bpy.ops.object.mode_set(mode="OBJECT")
+    pose = ob.pose.bones["Upper"]
+    pose.rotation_mode = "XYZ"
+    for f, angle in zip(frames, (0.0, bend)):
+        pose.rotation_euler = (angle, 0, 0)
+        pose.keyframe_insert("rotation_euler", frame=f)
+    return ob
+
+
+def bone_weights_by_height(ob, blend):
+    """Vertex groups "Lower" and "Upper" on mesh object `ob`, blending linearly over |z| < blend."""
+    co = np.empty(len(ob.data.vertices) * 3, np.float32)
+    ob.data.vertices.foreach_get("co", co)
+    t = np.clip((co[2::3] + blend) / (2 * blend), 0, 1)
+    _add_vertex_group(ob, 1 - t, "Lower")
+    _add_vertex_group(ob, t, "Upper")

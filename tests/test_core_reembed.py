@@ -98,3 +98,52 @@ def test_is_closed_matches_the_definition(seed):
     expected = all(n == 1 and count.get((e[1], e[0])) == 1 for e, n in count.items())
     assert vp.mesh.is_closed(f, len(v)) == expected
     assert expected == (kind == 0)
+
+
+def _frame_inputs(v, f, lat, shift, squash, **kw):
+    P = lat.rest_points.copy()
+    P[:, 2] *= squash
+    M = np.eye(4)
+    M[:3, 3] = shift
+    return vp.FrameInputs(positions=v.astype(np.float32), tris=f, lattice=lat, points=P, matrix=M, **kw)
+
+
+def test_pipeline_results_do_not_depend_on_the_frame_before():
+    v, f = _two_spheres()
+    lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    frames = [_frame_inputs(v, f, lat, (0.1 * k, 0, 0), 0.9 - 0.1 * k, axes="XY", volume_scale=1 + 0.05 * k)
+              for k in range(3)]
+    warm = vp.Pipeline()
+    history = [warm.evaluate(fr) for fr in frames + frames[::-1]]
+    for k, fr in enumerate(frames):
+        alone = vp.Pipeline().evaluate(fr)
+        for got in (history[k], history[len(history) - 1 - k]):
+            assert np.array_equal(got.positions, alone.positions)
+            assert np.array_equal(got.points, alone.points)
+    assert not history[1].rebound or history[1].binding is not history[0].binding
+
+
+def test_pipeline_keeps_scale_times_the_volume_that_comes_in():
+    v, f = vp.icosphere(3, 0.6)
+    lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    pipe = vp.Pipeline()
+    for k, scale in enumerate((1.0, 1.2, 0.8)):
+        moved = v * (1.0, 1.0, 1.0 + 0.2 * k)          # what reaches the slot changes too
+        inp = _frame_inputs(moved, f, lat, (0.05 * k, 0, 0), 0.5, axes="XYZ", volume_scale=scale)
+        res = pipe.evaluate(inp)
+        v_in = vp.signed_volume(moved.astype(np.float32).astype(float), f)
+        v_out = vp.signed_volume(res.positions, f)
+        assert abs(v_out / (scale * v_in) - 1) <= 1e-5
+        assert abs(res.input_volume / v_in - 1) <= 1e-5    # in lattice space: the same here (unit matrix)
+        assert abs(res.volume / res.input_volume - scale) <= 1e-5 * scale
+
+
+def test_pipeline_without_faces_gives_the_plain_deformation_only():
+    v, f = vp.icosphere(2, 0.6)
+    lat = vp.Lattice((4, 4, 4), "CATMULL_ROM", bounds=((-1,) * 3, (1,) * 3))
+    with_faces = vp.Pipeline().evaluate(_frame_inputs(v, f, lat, (0.1, 0, 0), 0.6, correct=False, strength=0.7))
+    without = vp.Pipeline().evaluate(_frame_inputs(v, None, lat, (0.1, 0, 0), 0.6, correct=False, strength=0.7))
+    assert np.abs(with_faces.positions - without.positions).max() <= 1e-6
+    assert without.volume is None and without.binding is None
+    with pytest.raises(ValueError, match="no faces"):
+        vp.Pipeline().evaluate(_frame_inputs(v, None, lat, (0, 0, 0), 0.6))

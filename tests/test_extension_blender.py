@@ -13,10 +13,10 @@ import vpffd_addon as core  # noqa: E402  (repository copy: only for building te
 
 try:
     from . import extension_harness as eh
-    from .blender_ref import triangle_mesh
+    from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
 except ImportError:
     import extension_harness as eh
-    from blender_ref import triangle_mesh
+    from blender_ref import evaluated_volume, evaluated_world, triangle_mesh
 
 VOLUME_TOL = 1e-5
 
@@ -67,26 +67,8 @@ def _animate_squash(lat_ob, amount=0.6, frames=(1, 15, 30)):
     return key
 
 
-def _evaluated(ob):
-    """(world coords (V,3) float64 from the float32 evaluated mesh, tris (F,3))."""
-    dg = bpy.context.evaluated_depsgraph_get()
-    ev = ob.evaluated_get(dg)
-    me = ev.data
-    co = np.empty(len(me.vertices) * 3, np.float32)
-    me.vertices.foreach_get("co", co)
-    me.calc_loop_triangles()
-    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
-    me.loop_triangles.foreach_get("vertices", tris)
-    M = np.array(ev.matrix_world, dtype=np.float64)
-    co = co.reshape(-1, 3).astype(np.float64)
-    return co @ M[:3, :3].T + M[:3, 3], tris.reshape(-1, 3)
-
-
-def _volume(ob):
-    """Volume of the evaluated mesh, independently: 1/6 sum a . (b x c) over its triangles."""
-    co, tris = _evaluated(ob)
-    a, b, c = co[tris[:, 0]], co[tris[:, 1]], co[tris[:, 2]]
-    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+_evaluated = evaluated_world
+_volume = evaluated_volume
 
 
 def _mesh_co(ob):

@@ -10,8 +10,6 @@ frame of an animation:
 Also: vertex-group weights repainted after Bind, the lattice's own vertex group, and the lattice's
 Edit Mode (points moved with `transform.resize`, a Mobility Group set).
 """
-import math
-
 import numpy as np
 import pytest
 
@@ -21,10 +19,12 @@ import vpffd_addon as core  # noqa: E402  (repository copy: only for building te
 
 try:
     from . import extension_harness as eh
-    from .blender_ref import triangle_mesh
+    from .blender_ref import (bone_weights_by_height, evaluated_volume, evaluated_world,
+                              triangle_mesh, two_bone_armature)
 except ImportError:
     import extension_harness as eh
-    from blender_ref import triangle_mesh
+    from blender_ref import (bone_weights_by_height, evaluated_volume, evaluated_world,
+                             triangle_mesh, two_bone_armature)
 
 FRAMES = (1, 7, 14, 20)
 SHAPE_TOL = 1e-5      # of the object's size
@@ -83,37 +83,6 @@ def _object(name):
     return ob
 
 
-def _armature():
-    arm = bpy.data.armatures.new("Rig")
-    ob = bpy.data.objects.new("Rig", arm)
-    bpy.context.scene.collection.objects.link(ob)
-    bpy.context.view_layer.objects.active = ob
-    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
-        bpy.ops.object.mode_set(mode="EDIT")
-        lower = arm.edit_bones.new("Lower")
-        lower.head, lower.tail = (0, 0, -1.2), (0, 0, 0)
-        upper = arm.edit_bones.new("Upper")
-        upper.head, upper.tail = (0, 0, 0), (0, 0, 1.2)
-        upper.parent = lower
-        bpy.ops.object.mode_set(mode="OBJECT")
-    pose = ob.pose.bones["Upper"]
-    pose.rotation_mode = "XYZ"
-    for f, angle in ((1, 0.0), (20, math.radians(60))):
-        pose.rotation_euler = (angle, 0, 0)
-        pose.keyframe_insert("rotation_euler", frame=f)
-    return ob
-
-
-def _weights_by_height(ob, names=("Lower", "Upper")):
-    v = np.array([p.co for p in ob.data.vertices])
-    t = np.clip((v[:, 2] + 0.35) / 0.7, 0, 1)
-    for name, w in zip(names, (1 - t, t)):
-        g = ob.vertex_groups.new(name=name)
-        for i, wi in enumerate(w):
-            if wi > 0:
-                g.add([i], float(wi), "REPLACE")
-
-
 def _shape_keys(ob):
     ob.shape_key_add(name="Basis")
     key = ob.shape_key_add(name="Bulge")
@@ -149,9 +118,9 @@ def _second_lattice(cache={}):
 def _before(ob, kind):
     """Add the modifiers (or shape keys) that come before the VP-FFD slot."""
     if kind == "armature":
-        _weights_by_height(ob)
+        bone_weights_by_height(ob, 0.35)
         mod = ob.modifiers.new("Armature", "ARMATURE")
-        mod.object = bpy.data.objects.get("Rig") or _armature()
+        mod.object = bpy.data.objects.get("Rig") or two_bone_armature("Rig", 1.2)
     elif kind == "shape_keys":
         _shape_keys(ob)
     elif kind == "subsurf_before":
@@ -210,25 +179,8 @@ def _input_twin(kind):
 
 # ------------------------------------------------------------------------------- measurements
 
-def _evaluated(ob):
-    """(world coords (V, 3) float64 of the float32 evaluated mesh, tris (F, 3))."""
-    dg = bpy.context.evaluated_depsgraph_get()
-    ev = ob.evaluated_get(dg)
-    me = ev.data
-    co = np.empty(len(me.vertices) * 3, np.float32)
-    me.vertices.foreach_get("co", co)
-    me.calc_loop_triangles()
-    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
-    me.loop_triangles.foreach_get("vertices", tris)
-    M = np.array(ev.matrix_world, dtype=np.float64)
-    co = co.reshape(-1, 3).astype(np.float64)
-    return co @ M[:3, :3].T + M[:3, 3], tris.reshape(-1, 3)
-
-
-def _volume(ob):
-    co, tris = _evaluated(ob)
-    a, b, c = co[tris[:, 0]], co[tris[:, 1]], co[tris[:, 2]]
-    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+_evaluated = evaluated_world
+_volume = evaluated_volume
 
 
 def _slot_output_volume(ob):

@@ -245,7 +245,9 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
     n_cells = dims[0] * dims[1] * dims[2]
     key = cell if b.n_islands == 1 else labels * n_cells + cell
     order = stable_order(key) if int(key.max()) < 2 ** 32 else np.argsort(key, kind="stable")
-    _, run_start, run_len = np.unique(key[order], return_index=True, return_counts=True)
+    sorted_key = key[order]
+    run_start = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
+    run_len = np.diff(np.r_[run_start, V])
     for bs in _BLOCK_SIZES:
         blocks_per_run = -(-run_len // bs)
         if blocks_per_run.sum() * bs <= _MAX_PADDING * V:

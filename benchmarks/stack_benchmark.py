@@ -88,7 +88,7 @@ def _scene(bpy, eh, scenario, slot, verts, tris):
         key.value = 0.7
         mover = {"mesh moves": ob, "lattice moves": lat_ob}.get(scenario)
         if mover is not None:
-            for f, x in ((1, -0.3), (last, 0.3)):
+            for f, x in ((1, -0.05), (last, 0.05)):
                 mover.location = (x, 0.05 * x, 0)
                 mover.keyframe_insert("location", frame=f)
         if scenario == "armature":
@@ -137,7 +137,7 @@ def cage_figures(bpy, eh, engine, cage_module, verts, tris):
     cage = vp.box_cage((2, 2, 5), ((-0.5,) * 3, (0.5,) * 3))
     eh.reset_scene()
     ob = _mesh_object(bpy, verts, tris)
-    cage_ob = cage_module.cage_object("Cage", cage.points, cage.cells)
+    cage_ob = cage_module.cage_object("Cage", cage.rest_points, cage.cells)
     bpy.context.scene.collection.objects.link(cage_ob)
     last = FRAME_WARMUPS + CAGE_FRAMES + 2
     for f, x in ((1, -0.1), (last, 0.1)):

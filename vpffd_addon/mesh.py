@@ -91,7 +91,7 @@ class Topology:
     topology stays), which then only re-embeds the new positions.
 
     tris: (F, 3) vertex indices; n_verts: number of vertices V.
-    Attributes: `tris` (F, 3) int64, `n_verts`, `is_closed`, `labels` (V,) island of each vertex,
+    Attributes: `tris` (F, 3) int64 (and `tris_t`, its (3, F) copy), `n_verts`, `is_closed`, `labels` (V,) island of each vertex,
     `n_islands`, `face_island` (F,), and `island_order` (V,) / `island_start` (n_islands,): the
     vertices grouped by island, for per-island reductions without scattered writes.
     """
@@ -102,6 +102,7 @@ class Topology:
         self.is_closed = is_closed(self.tris, self.n_verts)
         self.labels, self.n_islands = connected_components(self.tris, self.n_verts)
         self.face_island = self.labels[self.tris[:, 0]]
+        self.tris_t = np.ascontiguousarray(self.tris.T)     # (3, F): corner k of every face
         self.island_order = np.argsort(self.labels, kind="stable")
         self.island_start = np.searchsorted(self.labels[self.island_order], np.arange(self.n_islands))
 

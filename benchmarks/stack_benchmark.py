@@ -214,13 +214,14 @@ def bind_figures(bpy, eh, engine, handlers):
         t0 = time.perf_counter()
         scene.frame_set(frame)
         ordinary.append((time.perf_counter() - t0) * 1e3)
-    handlers.on_undo()            # what Blender calls after an undo step
+    # What Blender calls after an undo step: the restored state is solved again, reusing the
+    # binding when its inputs are unchanged. Timed with a frame step, as an ordinary frame is.
     t0 = time.perf_counter()
-    scene.frame_set(8)
-    depsgraph = bpy.context.evaluated_depsgraph_get()
-    engine.update(ob, depsgraph)
+    handlers.on_undo()
+    scene.frame_set(9)
     out["first_frame_after_undo_ms"] = (time.perf_counter() - t0) * 1e3
     out["ordinary_frame_ms"] = statistics.median(ordinary)
+    out["rebound_after_undo"] = bool(engine.stats(ob).get("rebound"))
     log(f"  first frame after undo {out['first_frame_after_undo_ms']:.0f} ms, ordinary frame "
         f"{out['ordinary_frame_ms']:.0f} ms")
     return out
@@ -270,5 +271,6 @@ def markdown(report):
     rows.append("")
     rows.append(f"`vp.bind`: {binds}; the Bind operator at {report['vertices']:,} vertices: "
                 f"{b['bind_operator_ms']:.0f} ms. First frame after an undo: "
-                f"{b['first_frame_after_undo_ms']:.0f} ms (an ordinary frame: {b['ordinary_frame_ms']:.0f} ms).")
+                f"{b['first_frame_after_undo_ms']:.0f} ms with the solve of the restored state (an ordinary "
+                f"frame: {b['ordinary_frame_ms']:.0f} ms).")
     return "\n".join(rows)

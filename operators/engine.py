@@ -385,9 +385,12 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         ob_eval = obj.evaluated_get(depsgraph)
         tap = modifier.read_tap(ob_eval, depsgraph)
         if tap is None:
-            if not force:
-                _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
-                                      "Geometry Nodes modifier after it drops point clouds?)")
+            if not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
+                _set_stats(obj, error="the VP-FFD modifier is switched off: switch it on to solve")
+                return False
+            _zero_offsets(obj, state)   # a defined result: whatever reaches the slot, undeformed
+            _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
+                                  "Geometry Nodes modifier after it drops point clouds?)")
             return False
         X, weights = tap
         # Animated settings (volume scale, strength, ...) have this evaluation's values on the

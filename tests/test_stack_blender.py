@@ -70,14 +70,14 @@ def _lattice():
     return ob
 
 
-def _capsule_mesh():
-    v, f = core.icosphere(5, 0.7)        # 10,242 vertices
+def _capsule_mesh(subdivisions=5):
+    v, f = core.icosphere(subdivisions, 0.7)        # 10,242 vertices at 5
     v = v * (1.0, 1.0, 1.5)
     return v, f
 
 
-def _object(name):
-    v, f = _capsule_mesh()
+def _object(name, subdivisions=5):
+    v, f = _capsule_mesh(subdivisions)
     ob = bpy.data.objects.new(name, triangle_mesh(v, f, name))
     bpy.context.scene.collection.objects.link(ob)
     return ob
@@ -387,3 +387,57 @@ def test_a_duplicated_vpffd_modifier_is_reported_and_nothing_is_applied_twice(ex
     ob.modifiers.remove(ob.modifiers[-1])
     bpy.context.scene.frame_set(15)
     assert _engine(ext).stats(ob).get("error") is None
+
+
+def test_unknown_faces_give_the_plain_deformation_and_say_so(ext):
+    """A Subdivision Surface both before and after VP-FFD: the faces at its slot are unknown (the
+    count changes on both sides), so the slot gives the Lattice modifier's result and the panel
+    says that the volume is not corrected. Pins are off when only the count before changes."""
+    lat = _lattice()
+    ours = _object("Ours", 3)
+    ours.modifiers.new("Before", "SUBSURF").levels = 1
+    assert _bind(ours, lattice=lat, axes="XYZ") == {"FINISHED"}
+    ours.modifiers.new("After", "SUBSURF").levels = 1
+    twin = _object("Twin", 3)
+    twin.modifiers.new("Before", "SUBSURF").levels = 1
+    twin.modifiers.new("Lattice", "LATTICE").object = lat
+    twin.modifiers.new("After", "SUBSURF").levels = 1
+    bpy.context.scene.frame_set(14)
+    info = _engine(ext).stats(ours)
+    assert info.get("error") is None
+    assert any("volume is not corrected" in w for w in info["warnings"]), info["warnings"]
+    a, b = _evaluated(ours)[0], _evaluated(twin)[0]
+    assert np.abs(a - b).max() <= SHAPE_TOL * np.ptp(b, 0).max()
+
+    pinned = _object("Pinned", 3)
+    pinned.modifiers.new("Before", "SUBSURF").levels = 1
+    target = bpy.data.objects.new("Target", None)
+    bpy.context.scene.collection.objects.link(target)
+    assert _bind(pinned, lattice=lat, axes="XYZ", pin_mode="VERTEX", pin_vertex=3,
+                 pin_target=target) == {"FINISHED"}
+    bpy.context.scene.frame_set(15)
+    info = _engine(ext).stats(pinned)
+    assert info.get("error") is None
+    assert any("pins are off" in w for w in info["warnings"]), info["warnings"]
+    pinned.modifiers[-1].show_viewport = False
+    v_in = _volume(pinned)
+    pinned.modifiers[-1].show_viewport = True
+    assert abs(_volume(pinned) / v_in - 1) <= VOLUME_TOL
+
+
+def test_a_geometry_nodes_modifier_that_drops_point_clouds_is_reported(ext):
+    lat = _lattice()
+    ob = _object("Ball")
+    assert _bind(ob, lattice=lat, axes="XYZ") == {"FINISHED"}
+    ng = bpy.data.node_groups.new("Mesh Only", "GeometryNodeTree")
+    ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    gin, gout = ng.nodes.new("NodeGroupInput"), ng.nodes.new("NodeGroupOutput")
+    split = ng.nodes.new("GeometryNodeSeparateComponents")
+    ng.links.new(gin.outputs[0], split.inputs[0])
+    ng.links.new(split.outputs["Mesh"], gout.inputs[0])
+    ob.modifiers.new("Mesh Only", "NODES").node_group = ng
+    source = _input_twin("none")
+    bpy.context.scene.frame_set(14)
+    assert "nothing reaches VP-FFD's slot" in _engine(ext).stats(ob)["error"]
+    np.testing.assert_array_equal(_evaluated(ob)[0], _evaluated(source)[0])   # undeformed, not stale

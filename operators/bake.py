@@ -336,9 +336,9 @@ class Baker:
         self.scene.frame_set(self.frame_start)
         engine.update(obj, self._depsgraph(), force=True)
         first = engine.slot_output(obj)
-        if engine.stats(obj).get("error") or first is None:
+        if engine.status(obj).error or first is None:
             self._restore()
-            raise BakeError(f"frame {self.frame_start}: {engine.stats(obj).get('error') or 'no result'}")
+            raise BakeError(f"frame {self.frame_start}: {engine.status(obj).error or 'no result'}")
         n = self.n_points = len(first)
         try:
             if self.fmt == "PC2":
@@ -373,7 +373,7 @@ class Baker:
         # when the inputs differ from that solve. The first frame is forced, so no stale state
         # (e.g. an undo) can slip in.
         engine.update(self.obj, depsgraph, force=self.done == 0)
-        error = engine.stats(self.obj).get("error")
+        error = engine.status(self.obj).error
         if error:
             raise BakeError(f"frame {f}: {error}")
         coords = engine.slot_output(self.obj)

@@ -7,7 +7,9 @@ object needs survives in the .blend: the settings (`obj.vpffd`), the mesh's own 
 written), the pins (a mesh attribute written at Bind), the VP-FFD modifier and its helper. The
 pipeline's caches are rebuilt on demand, e.g. after loading a file.
 """
+import dataclasses
 import time
+from typing import Optional
 
 import numpy as np
 
@@ -21,27 +23,52 @@ CAGE_REST_PROPERTY = "vpffd_cage_rest"  # the cage's points at bind time, flat, 
 FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request only (Check Folds)
 
 _cache = {}   # object session_uid -> _Bound
-_stats = {}   # object session_uid -> dict shown by the panel
+_stats = {}   # object session_uid -> Status shown by the panel
 
 
 class BindError(ValueError):
     """A problem the user must fix before binding (the message says what)."""
 
 
+@dataclasses.dataclass
+class Status:
+    """What the last update of an object found: the panel shows these fields. Volumes are
+    percentages of the volume that reached the VP-FFD slot; None where not known."""
+    error: Optional[str] = None            #: why nothing (or only the input) is shown, in words
+    switched_off: bool = False             #: the modifier is off in the viewport
+    warnings: tuple = ()                   #: what the solve could not do, in words
+    volume_percent: Optional[float] = None
+    plain_percent: Optional[float] = None  #: what the plain Lattice modifier would give
+    input_volume: Optional[float] = None   #: in lattice space
+    seconds: Optional[float] = None        #: the whole update
+    core_seconds: Optional[float] = None   #: the frame pipeline alone
+    backend: str = "CPU"
+    backend_reason: str = ""
+    n_verts: Optional[int] = None          #: points that reached the slot
+    closed: Optional[bool] = None          #: whether their faces close a volume
+    folds: Optional[int] = None            #: vertices where the lattice folds space
+    rebound: bool = False                  #: whether this update embedded the input anew
+
+
+def status(obj):
+    """The typed `Status` of the object's last update (an empty one before any)."""
+    return _stats.get(obj.session_uid) or Status()
+
+
 def stats(obj):
-    return _stats.get(obj.session_uid, {})
+    """`status(obj)` as a dict of the fields that are set (for scripts)."""
+    return {k: v for k, v in dataclasses.asdict(status(obj)).items() if v is not None}
 
 
 _reported = {}  # object session_uid -> last error printed, so a failing frame range logs once
 
 
 def _set_stats(obj, **values):
-    _stats[obj.session_uid] = values
-    error = values.get("error")
-    if error and _reported.get(obj.session_uid) != error:
-        print(f"VP-FFD: {obj.name}: {error}")  # the console and farm logs, once per new problem
-    _reported[obj.session_uid] = error
-    return values
+    st = _stats[obj.session_uid] = Status(**values)
+    if st.error and _reported.get(obj.session_uid) != st.error:
+        print(f"VP-FFD: {obj.name}: {st.error}")  # the console and farm logs, once per new problem
+    _reported[obj.session_uid] = st.error
+    return st
 
 
 def forget(obj=None):
@@ -325,7 +352,7 @@ def _write(state, helper, offsets):
 
 def update(obj, depsgraph, force=False):
     """Solve the current frame for a bound object and write its offsets. Never raises: problems
-    go to the panel (`stats(obj)['error']`) and the console. Returns True when a solve ran.
+    go to the panel (`status(obj).error`) and the console. Returns True when a solve ran.
     `force` solves even when the inputs did not change and the modifier is switched off (Bind,
     Apply, Check Folds and Bake need the solve)."""
     # Overflow is detected on the results and reported in words; NumPy's own warnings would only
@@ -349,13 +376,13 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             if depsgraph.mode != "RENDER":
                 # Switched off in the viewport: the panel says so instead of an error of an earlier
                 # solve (the last figures stay, e.g. from Check Folds); switching it on solves again.
-                _set_stats(obj, **{**stats(obj), "error": None, "switched_off": True})
+                _set_stats(obj, **{**dataclasses.asdict(status(obj)), "error": None, "switched_off": True})
                 state = _cache.get(uid)
                 if state is not None:
                     state.signature = None
             return False  # switched off for this evaluation, like any modifier
         if obj.mode == "EDIT":
-            _set_stats(obj, **{**stats(obj), "error": "paused while the mesh is in Edit Mode"})
+            _set_stats(obj, **{**dataclasses.asdict(status(obj)), "error": "paused while the mesh is in Edit Mode"})
             state = _cache.get(uid)
             if state is not None:
                 state.signature = None   # leaving Edit Mode solves again, which clears the message
@@ -462,7 +489,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         binding = result.binding
         backend, backend_reason = state.backend
         info = dict(error=None, seconds=seconds, core_seconds=core_seconds,
-                    warnings=warnings + list(result.warnings), backend=backend,
+                    warnings=tuple(warnings) + tuple(result.warnings), backend=backend,
                     backend_reason=backend_reason, n_verts=len(X), folds=None,
                     closed=None if binding is None else binding.is_closed,
                     input_volume=result.input_volume, rebound=result.rebound)
@@ -508,22 +535,22 @@ def overlay_geometry(obj):
     state = _cache.get(obj.session_uid)
     if state is None or getattr(state, "overlay", None) is None:
         return None
-    info = stats(obj)
-    label = (f"{info['volume_percent']:.3f}% volume" if "volume_percent" in info else "") \
-        if not info.get("error") else "VP-FFD: error"
+    info = status(obj)
+    label = (f"{info.volume_percent:.3f}% volume" if info.volume_percent is not None else "") \
+        if not info.error else "VP-FFD: error"
     return state.overlay + (label,)
 
 
 def check_folds(obj, depsgraph):
     """Solve the current frame and count folds whatever the mesh size; None on error."""
-    if not update(obj, depsgraph, force=True) and stats(obj).get("error"):
+    if not update(obj, depsgraph, force=True) and status(obj).error:
         return None
     state = _cache.get(obj.session_uid)
     if state is None or state.result is None or state.result.binding is None:
         return None
-    info = stats(obj)
-    info["folds"] = count_folds(state.result.binding, state.result.points)
-    return info["folds"]
+    info = status(obj)
+    info.folds = count_folds(state.result.binding, state.result.points)
+    return info.folds
 
 
 def count_folds(binding, points):
@@ -621,10 +648,10 @@ def bind(obj, depsgraph):
     forget(obj)
     depsgraph.update()
     update(obj, depsgraph, force=True)
-    info = stats(obj)
-    if info.get("error"):
+    info = status(obj)
+    if info.error:
         unbind(obj)
-        raise BindError(info["error"])
+        raise BindError(info.error)
 
     warnings = []
     state = _cache[obj.session_uid]
@@ -643,9 +670,9 @@ def bind(obj, depsgraph):
                             "(they follow its boundary, as with the Lattice modifier)")
         if 1 in b.lattice.shape:
             warnings.append("the lattice has a single point on an axis: it only moves along that axis")
-    if info.get("folds"):
-        warnings.append(f"the lattice folds space: {info['folds']} vertices inverted")
-    warnings.extend(info.get("warnings", ()))
+    if info.folds:
+        warnings.append(f"the lattice folds space: {info.folds} vertices inverted")
+    warnings.extend(info.warnings)
     return warnings
 
 
@@ -701,9 +728,9 @@ def save_shape_key(obj, depsgraph, name="VP-FFD"):
     if mod is None:
         raise BindError("the VP-FFD modifier was removed: Bind again, or Unbind")
     update(obj, depsgraph, force=True)
-    info = stats(obj)
-    if info.get("error"):
-        raise BindError(info["error"])
+    info = status(obj)
+    if info.error:
+        raise BindError(info.error)
     co = slot_output(obj)
     if co is None or len(co) != len(mesh.vertices):
         raise BindError(f"{0 if co is None else len(co)} points reach VP-FFD but the mesh has "
@@ -733,9 +760,9 @@ def apply(obj, depsgraph):
         raise BindError(f"modifiers before VP-FFD ({', '.join(before)}) would be applied with it: "
                         "apply them first, or move VP-FFD to the top")
     update(obj, depsgraph, force=True)
-    info = stats(obj)
-    if info.get("error"):
-        raise BindError(info["error"])
+    info = status(obj)
+    if info.error:
+        raise BindError(info.error)
     co = slot_output(obj)
     if co is None or len(co) != len(mesh.vertices):
         raise BindError("the VP-FFD result does not match the mesh's vertices: Re-bind")

@@ -102,7 +102,7 @@ class OBJECT_OT_vpffd_check_folds(_ObjectOperator, bpy.types.Operator):
         ob = context.object
         n = engine.check_folds(ob, context.evaluated_depsgraph_get())
         if n is None:
-            self.report({"ERROR"}, f"VP-FFD: {engine.stats(ob).get('error')}")
+            self.report({"ERROR"}, f"VP-FFD: {engine.status(ob).error}")
             return {"CANCELLED"}
         self.report({"WARNING"} if n else {"INFO"}, f"VP-FFD: {n} inverted vertices")
         return {"FINISHED"}

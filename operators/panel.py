@@ -83,25 +83,25 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
 
     @staticmethod
     def draw_status(layout, ob):
-        info = engine.stats(ob)
+        info = engine.status(ob)
         box = layout.box()
-        if info.get("error"):
-            box.label(text=info["error"], icon="ERROR")
-        if info.get("switched_off"):
+        if info.error:
+            box.label(text=info.error, icon="ERROR")
+        if info.switched_off:
             box.label(text="The VP-FFD modifier is switched off in the viewport", icon="HIDE_ON")
-        if "volume_percent" in info:
-            box.label(text=f"Volume {info['volume_percent']:.4f}% of its input "
-                           f"(plain lattice: {info['plain_percent']:.2f}%)")
-        if "seconds" in info:
-            box.label(text=f"Solve {1e3 * info['seconds']:.1f} ms on the {info.get('backend', 'CPU')}, "
-                           f"{info['n_verts']:,} vertices")
-        if info.get("backend_reason") and ob.vpffd.backend != "CPU":
-            box.label(text=info["backend_reason"], icon="INFO")
-        if info.get("closed") is False:
+        if info.volume_percent is not None:
+            box.label(text=f"Volume {info.volume_percent:.4f}% of its input "
+                           f"(plain lattice: {info.plain_percent:.2f}%)")
+        if info.seconds is not None:
+            box.label(text=f"Solve {1e3 * info.seconds:.1f} ms on the {info.backend}, "
+                           f"{info.n_verts:,} vertices")
+        if info.backend_reason and ob.vpffd.backend != "CPU":
+            box.label(text=info.backend_reason, icon="INFO")
+        if info.closed is False:
             box.label(text="Open mesh: volume measured about the lattice centre", icon="INFO")
-        if info.get("folds"):
-            box.label(text=f"Lattice folds space: {info['folds']} inverted vertices", icon="ERROR")
-        for text in info.get("warnings", ()):
+        if info.folds:
+            box.label(text=f"Lattice folds space: {info.folds} inverted vertices", icon="ERROR")
+        for text in info.warnings:
             box.label(text=text, icon="ERROR")
         box.operator("object.vpffd_check_folds", icon="VIEWZOOM")
 

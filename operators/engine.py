@@ -17,9 +17,10 @@ from .. import vpffd_addon as vp
 from . import cage, gpu_backend, meshio, modifier
 
 LEGACY_ATTRIBUTES = ("vpffd_offset", "vpffd_weight")  # written by earlier versions
-PIN_ATTRIBUTE = "vpffd_pin"         # 1 for pinned vertices
+PIN_ATTRIBUTE = "vpffd_pin"         # pinned vertices, in files of earlier versions
+PIN_PROPERTY = "vpffd_pins"         # on the solver helper: the pinned vertices' indices
 JACOBIAN_ATTRIBUTE = "vpffd_jacobian"  # det of the deformation's Jacobian (on request)
-CAGE_REST_PROPERTY = "vpffd_cage_rest"  # the cage's points at bind time, flat, in cage space
+CAGE_REST_PROPERTY = "vpffd_cage_rest"  # on the helper: the cage's points at Bind, flat, cage space
 FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request only (Check Folds)
 
 _cache = {}   # object session_uid -> _Bound
@@ -139,10 +140,16 @@ def _cage_points(cage_eval, n_points):
     return points
 
 
-def _cage_model(state, obj, cage_ob):
+def _saved(helper, obj, name):
+    """What Bind saved under `name`: on the solver helper (or on the mesh, in earlier versions)."""
+    value = helper.get(name) if helper is not None else None
+    return obj.data.get(name) if value is None else value
+
+
+def _cage_model(state, obj, cage_ob, helper):
     """(vp.Cage at bind time, its rest points (N, 3), key) for a bound mesh, cached per object."""
     flat = tuple(cage_ob.data[cage.CELLS_PROPERTY].to_list())
-    rest = obj.data.get(CAGE_REST_PROPERTY)
+    rest = _saved(helper, obj, CAGE_REST_PROPERTY)
     if rest is None:
         raise ValueError("the mesh was bound to another kind of lattice: Re-bind")
     rest = np.array(rest.to_list(), np.float64).reshape(-1, 3)
@@ -222,11 +229,14 @@ def _directions(s, lat_matrix):
     return "", world @ inv3.T
 
 
-def _pins(s, obj):
-    """(V,) indices of the pinned vertices of the mesh (written at Bind)."""
+def _pins(s, obj, helper):
+    """(k,) indices of the pinned vertices of the mesh (saved at Bind)."""
     if s.pin_mode == "NONE":
         return np.zeros(0, np.int64)
-    pins = _float_attribute(obj.data, PIN_ATTRIBUTE)
+    saved = helper.get(PIN_PROPERTY)
+    if saved is not None:
+        return np.array(saved.to_list() if hasattr(saved, "to_list") else saved, np.int64)
+    pins = _float_attribute(obj.data, PIN_ATTRIBUTE)        # a file bound by an earlier version
     return np.zeros(0, np.int64) if pins is None else np.flatnonzero(pins > 0)
 
 
@@ -431,7 +441,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             points = meshio.lattice_points(lat_eval.data, "co_deform")
             lattice_weights = _lattice_weights(lat_ob)
         else:
-            lattice, grid, _ = _cage_model(state, obj, lat_ob)
+            lattice, grid, _ = _cage_model(state, obj, lat_ob, helper)
             points = _cage_points(lat_eval, lattice.n_points)
             cage_options = (s.cage_depth, s.cage_outside)
             lattice_weights = None
@@ -443,7 +453,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         axes, directions = _directions(s, M_lat)
         tris, faces_from = _faces(state, obj, ob_eval, len(X))
         warnings = []
-        pins = _pins(s, obj)
+        pins = _pins(s, obj, helper)
         if len(pins) and faces_from != "mesh":
             warnings.append("pins are off: the modifiers before VP-FFD change the vertex count")
             pins = pins[:0]
@@ -497,7 +507,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             info["volume_percent"] = 100.0 * result.volume / result.input_volume
             info["plain_percent"] = 100.0 * result.plain_volume / result.input_volume
         if binding is not None:
-            if s.use_fold_attribute and faces_from == "mesh":
+            if s.use_fold_attribute and faces_from == "mesh" and obj.data.library is None:
                 det = vp.jacobian_det(binding, result.points)
                 _float_attribute(obj.data, JACOBIAN_ATTRIBUTE, det)
                 info["folds"] = int((det <= 0).sum())
@@ -632,19 +642,20 @@ def bind(obj, depsgraph):
             raise BindError("pins need a target Empty (Pin Target)")
         s.pin_target_rest = np.asarray(s.pin_target.matrix_world, dtype=float).ravel().tolist()
         s.pin_mesh_rest = np.asarray(obj.matrix_world, dtype=float).ravel().tolist()
-    _remove_attribute(mesh, PIN_ATTRIBUTE)
-    if pins.any():
-        _float_attribute(mesh, PIN_ATTRIBUTE, pins)
-    for legacy in LEGACY_ATTRIBUTES:
-        _remove_attribute(mesh, legacy)
-    if cage_rest is not None:
-        mesh[CAGE_REST_PROPERTY] = cage_rest.ravel().tolist()
-    elif CAGE_REST_PROPERTY in mesh:
-        del mesh[CAGE_REST_PROPERTY]
-
+    if mesh.library is None:
+        for legacy in (PIN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
+            _remove_attribute(mesh, legacy)
     s.bound_topology = meshio.topology_signature(mesh)
     s.is_bound = True
     modifier.ensure(obj)
+    # What Bind saves goes on the solver helper, local data even when the mesh is linked.
+    helper = modifier.helper(obj)
+    for key, value in ((PIN_PROPERTY, np.flatnonzero(pins > 0).tolist() if pins.any() else None),
+                       (CAGE_REST_PROPERTY, None if cage_rest is None else cage_rest.ravel().tolist())):
+        if value is not None:
+            helper[key] = value
+        elif key in helper:
+            del helper[key]
     forget(obj)
     depsgraph.update()
     update(obj, depsgraph, force=True)
@@ -685,9 +696,12 @@ def _inside_count(state, lattice):
 
 
 def _remove_attribute(mesh, name):
+    """Remove attribute (or custom property) `name` of the mesh, when it has one."""
     attr = mesh.attributes.get(name)
     if attr is not None:
         mesh.attributes.remove(attr)
+    if name in mesh:
+        del mesh[name]
 
 
 def unbind(obj):
@@ -699,10 +713,9 @@ def unbind(obj):
     cache = find_cache(obj)
     if cache is not None:
         obj.modifiers.remove(cache)
-    for name in (PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE) + LEGACY_ATTRIBUTES:
-        _remove_attribute(mesh, name)
-    if CAGE_REST_PROPERTY in mesh:
-        del mesh[CAGE_REST_PROPERTY]
+    if mesh.library is None:
+        for name in (PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
+            _remove_attribute(mesh, name)
     obj.vpffd.is_bound = False
     forget(obj)
     mesh.update_tag()
@@ -750,6 +763,9 @@ def apply(obj, depsgraph):
     slot's input is the mesh's own coordinates: VP-FFD first among the enabled modifiers, and no
     shape keys."""
     mesh = obj.data
+    if mesh.library is not None:
+        raise BindError(f"mesh '{mesh.name}' is linked from {mesh.library.filepath}: its coordinates "
+                        "cannot be changed here (Save as Shape Key works, or apply in the library)")
     if mesh.shape_keys is not None:
         raise BindError("the mesh has shape keys: applying would only change the basis shape")
     mod = modifier.find(obj)

@@ -7,7 +7,9 @@ Its node group does two things with the geometry that reaches it:
   slot untouched, so the handler reads the slot's input from the end of the stack;
 - the *result*: the input moved by per-point offsets read, by index, from the object's solver
   helper (a hidden vertex-only mesh object that the handler writes after every solve).
-Being a real modifier, it is toggled, reordered and removed like any other.
+Being a real modifier, it is toggled, reordered and removed like any other. The helper also keeps
+what Bind saves (pins, a cage's rest shape) as custom properties: it is local data of the file,
+writable even when the mesh is linked from a library.
 """
 import bpy
 import numpy as np
@@ -226,7 +228,12 @@ def helper(obj, mod=None, exclusive_of=()):
         return None
     ob = get_input(mod, SOLVER_INPUT)
     if ob is None or ob.type != "MESH" or ob.get(HELPER_TAG) is None or ob in exclusive_of:
+        shared = ob if ob is not None and ob.get(HELPER_TAG) is not None else None
         ob = _new_helper(obj)
+        if shared is not None:          # a duplicate keeps what was saved at Bind (pins, cage)
+            for key in shared.keys():
+                if key != HELPER_TAG:
+                    ob[key] = shared[key]
         set_input(mod, SOLVER_INPUT, ob)
     return ob
 

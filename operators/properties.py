@@ -152,11 +152,16 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Vertex, edge, face and corner counts at bind time")
 
 
+# Every setting can be changed on a library override of a linked character (and is saved with the
+# override), as a Lattice modifier's settings can.
+for _prop in VPFFD_Settings.__annotations__.values():
+    _prop.keywords.setdefault("override", {"LIBRARY_OVERRIDABLE"})
+
 classes = (VPFFD_Settings,)
 
 
 def register():
-    bpy.types.Object.vpffd = PointerProperty(type=VPFFD_Settings)
+    bpy.types.Object.vpffd = PointerProperty(type=VPFFD_Settings, override={"LIBRARY_OVERRIDABLE"})
 
 
 def unregister():

@@ -159,8 +159,8 @@ def _vpffd_object(kind, lattice, **settings):
     return ob
 
 
-def _lattice_twin(kind, lattice, **modifier_settings):
-    ob = _object("Twin_" + kind)
+def _lattice_twin(kind, lattice, subdivisions=5, **modifier_settings):
+    ob = _object("Twin_" + kind, subdivisions)
     _before(ob, kind)
     mod = ob.modifiers.new("Lattice", "LATTICE")
     mod.object = lattice
@@ -441,3 +441,60 @@ def test_a_geometry_nodes_modifier_that_drops_point_clouds_is_reported(ext):
     bpy.context.scene.frame_set(14)
     assert "nothing reaches VP-FFD's slot" in _engine(ext).stats(ob)["error"]
     np.testing.assert_array_equal(_evaluated(ob)[0], _evaluated(source)[0])   # undeformed, not stale
+
+
+def test_a_library_override_of_a_linked_character_binds_and_deforms(ext, tmp_path):
+    """A rigged character linked from another file with a library override: its mesh stays linked
+    (nothing of it can be written), and VP-FFD binds, deforms like a Lattice modifier, keeps the
+    volume, and does so again after saving and reopening the shot."""
+    library = str(tmp_path / "character.blend")
+    body = _object("Body", 3)
+    _before(body, "armature")
+    character = bpy.data.collections.new("Character")
+    bpy.context.scene.collection.children.link(character)
+    for ob in (body, bpy.data.objects["Rig"]):
+        bpy.context.scene.collection.objects.unlink(ob)
+        character.objects.link(ob)
+    bpy.ops.wm.save_as_mainfile(filepath=library)
+    eh.reset_scene()
+    bpy.context.scene.frame_set(1)
+
+    with bpy.data.libraries.load(library, link=True) as (src, dst):
+        dst.collections = ["Character"]
+    linked = dst.collections[0]
+    scene = bpy.context.scene
+    scene.collection.children.link(linked)
+    override = linked.override_hierarchy_create(scene, bpy.context.view_layer)
+    if linked.name in scene.collection.children:
+        scene.collection.children.unlink(linked)
+    body = next(ob for ob in override.all_objects if ob.type == "MESH")
+    assert body.override_library is not None and body.data.library is not None
+    lat = _lattice()
+    settings = dict(lattice=lat, axes="XYZ")
+    assert _bind(body, **settings) == {"FINISHED"}
+    twin = _lattice_twin("armature", lat, 3)
+    twin.modifiers["Armature"].object = next(ob for ob in override.all_objects if ob.type == "ARMATURE")
+
+    def check(f, body, twin):
+        scene = bpy.context.scene
+        scene.frame_set(f)
+        assert _engine(ext).stats(body).get("error") is None, _engine(ext).stats(body)["error"]
+        vp_mod = body.modifiers[-1]
+        vp_mod.show_viewport = False
+        v_in = _volume(body)
+        vp_mod.show_viewport = True
+        assert abs(_volume(body) / v_in - 1) <= VOLUME_TOL, f"frame {f}"
+        body.vpffd.axes = "NONE"
+        scene.frame_set(f)
+        a, b = _evaluated(body)[0], _evaluated(twin)[0]
+        body.vpffd.axes = "XYZ"
+        assert np.abs(a - b).max() <= SHAPE_TOL * np.ptp(b, 0).max(), f"frame {f}"
+
+    check(14, body, twin)
+    shot = str(tmp_path / "shot.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=shot)
+    bpy.ops.wm.open_mainfile(filepath=shot)
+    body = bpy.data.objects["Body"]
+    twin = bpy.data.objects["Twin_armature"]
+    assert body.vpffd.is_bound and body.vpffd.lattice is not None and body.data.library is not None
+    check(17, body, twin)

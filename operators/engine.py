@@ -317,20 +317,30 @@ def _mobility(s, lattice_object):
     return _lattice_group(lattice_object, s.mobility_group)
 
 
-def _faces(state, obj, ob_eval, n):
-    """(F, 3) triangles of the `n` positions that reach the slot, or None when they are unknown.
+def _faces(state, obj, ob_eval, n, tapped, mod, may_write):
+    """((F, 3) triangles of the `n` positions that reach the slot or None when unknown, where
+    they came from: "mesh", "final", "tap" or None).
 
     Deform-only modifiers before the slot keep the mesh's own topology (same vertex count); when
     modifiers before it change the count, the faces are those of the evaluated mesh at the end of
-    the stack, provided that nothing after the slot changed the count again."""
+    the stack, provided that nothing after the slot changed the count again; otherwise the
+    modifier is asked to pass the triangles of its input along (its Tap Faces input, which costs a
+    triangulation per evaluation, so it is on only while needed). `tapped`: the triangles that
+    came with the tap, or None."""
     mesh = obj.data
     if n == len(mesh.vertices):
         source, key = mesh, ("mesh", meshio.topology_signature(mesh))
     else:
         final = ob_eval.data
         if final is None or len(final.vertices) != n:
+            if may_write:
+                modifier.set_input(mod, modifier.FACES_INPUT, True)
+            if tapped is not None and len(tapped) and int(tapped.max()) < n:
+                return tapped, "tap"
             return None, None
         source, key = final, ("final", meshio.topology_signature(final))
+    if may_write:
+        modifier.set_input(mod, modifier.FACES_INPUT, False)
     if state.faces_key != key:
         state.faces, state.faces_key = meshio.mesh_triangles(source), key
     return state.faces, key[0]
@@ -429,7 +439,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
                                   "Geometry Nodes modifier after it drops point clouds?)")
             return False
-        X, weights = tap
+        X, weights, tapped_tris = tap
         # Animated settings (volume scale, strength, ...) have this evaluation's values on the
         # evaluated object only: a render's depsgraph does not write them back to the original.
         s = ob_eval.vpffd
@@ -451,7 +461,8 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         M_ob = meshio.matrix(ob_eval.matrix_world)
         L = np.linalg.inv(M_lat) @ M_ob
         axes, directions = _directions(s, M_lat)
-        tris, faces_from = _faces(state, obj, ob_eval, len(X))
+        tris, faces_from = _faces(state, obj, ob_eval, len(X), tapped_tris, mod,
+                                  may_write=depsgraph.mode != "RENDER")
         warnings = []
         pins = _pins(s, obj, helper)
         if len(pins) and faces_from != "mesh":
@@ -461,14 +472,15 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         mobility = _mobility(s, lat_ob)
         correct = bool(axes or directions is not None or pin_targets)
         if tris is None and correct:
-            warnings.append("the volume is not corrected: the modifiers before VP-FFD change the "
-                            "vertex count and those after it change it again, so the faces at its "
-                            "slot are unknown")
+            warnings.append("the volume is not corrected on this update: the faces that reach "
+                            "VP-FFD are not known yet (modifiers before and after it change the "
+                            "vertex count); they are passed along from the next evaluation on")
             correct = False
         settings = (axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
                     s.use_fold_attribute, cage_options, faces_from, type(lattice).__name__,
                     getattr(lattice, "shape", None), getattr(lattice, "interpolation", None))
-        arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions)
+        arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions,
+                  tris if faces_from == "tap" else None)
         signature = (settings, arrays)
         if not force and state.signature is not None and state.signature[0] == settings and all(
                 (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
@@ -659,6 +671,9 @@ def bind(obj, depsgraph):
     forget(obj)
     depsgraph.update()
     update(obj, depsgraph, force=True)
+    if modifier.get_input(modifier.find(obj), modifier.FACES_INPUT):
+        depsgraph.update()              # the modifier now passes its input's faces along
+        update(obj, depsgraph, force=True)
     info = status(obj)
     if info.error:
         unbind(obj)

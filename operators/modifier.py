@@ -17,12 +17,15 @@ import numpy as np
 MODIFIER_NAME = "VP-FFD"
 NODE_GROUP_NAME = "VP-FFD"
 _TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
-_VERSION = 2                 # the tag's value: groups of older versions are rebuilt
+_VERSION = 3                 # the tag's value: groups of older versions are rebuilt
 LATTICE_INPUT = "Lattice"   # object input: makes the lattice or cage a dependency of the mesh
 SOLVER_INPUT = "Solver"     # object input: the helper holding the offsets
 GROUP_INPUT = "Vertex Group"
 INVERT_INPUT = "Invert Vertex Group"
+FACES_INPUT = "Tap Faces"   # on when the handler needs the faces at the slot (see read_tap)
 TAP_ATTRIBUTE = "vpffd_tap"
+FACE_ATTRIBUTE = "vpffd_face"          # marks the face tap's points
+CORNER_ATTRIBUTES = ("vpffd_c0", "vpffd_c1", "vpffd_c2")   # a triangle's vertex indices
 WEIGHT_ATTRIBUTE = "vpffd_weight"
 HELPER_TAG = "vpffd_solver"  # custom property of helper objects: the name of their mesh object
 
@@ -46,6 +49,8 @@ def _build(ng):
             description="VP-FFD's own helper object holding the solved offsets (set by Bind)")
     _socket(ng, GROUP_INPUT, "NodeSocketString", description="Vertex group weighting the deformation")
     _socket(ng, INVERT_INPUT, "NodeSocketBool", description="Invert the vertex group's weights")
+    _socket(ng, FACES_INPUT, "NodeSocketBool",
+            description="Also pass the input's triangles to VP-FFD (set when it cannot find them)")
     N, link = ng.nodes, ng.links.new
     gin, gout = N.new("NodeGroupInput"), N.new("NodeGroupOutput")
 
@@ -99,14 +104,50 @@ def _build(ng):
     mark.inputs["Value"].default_value = True
     link(points.outputs[0], mark.inputs["Geometry"])
 
+    # Face tap (only when asked): one point per triangle of the triangulated input, carrying its
+    # three vertex indices, in the triangle's own corner order.
+    faces = N.new("GeometryNodeTriangulate")
+    link(gin.outputs[0], faces.inputs["Mesh"])
+    geometry = faces.outputs[0]
+    for k, name in enumerate(CORNER_ATTRIBUTES):
+        corner = N.new("GeometryNodeCornersOfFace")
+        corner.inputs["Sort Index"].default_value = k
+        link(N.new("GeometryNodeInputIndex").outputs[0], corner.inputs["Face Index"])
+        vertex = N.new("GeometryNodeVertexOfCorner")
+        link(corner.outputs["Corner Index"], vertex.inputs["Corner Index"])
+        store = N.new("GeometryNodeStoreNamedAttribute")
+        store.data_type = "INT"
+        store.domain = "FACE"
+        store.inputs["Name"].default_value = name
+        link(geometry, store.inputs["Geometry"])
+        link(vertex.outputs["Vertex Index"], store.inputs["Value"])
+        geometry = store.outputs[0]
+        store.location = (-150 + 200 * k, -700)
+    face_points = N.new("GeometryNodeMeshToPoints")
+    face_points.mode = "FACES"
+    face_points.inputs["Radius"].default_value = 0.0
+    link(geometry, face_points.inputs["Mesh"])
+    face_mark = N.new("GeometryNodeStoreNamedAttribute")
+    face_mark.data_type = "BOOLEAN"
+    face_mark.domain = "POINT"
+    face_mark.inputs["Name"].default_value = FACE_ATTRIBUTE
+    face_mark.inputs["Value"].default_value = True
+    link(face_points.outputs[0], face_mark.inputs["Geometry"])
+    only_if = N.new("GeometryNodeSwitch")
+    only_if.input_type = "GEOMETRY"
+    link(gin.outputs[FACES_INPUT], only_if.inputs["Switch"])
+    link(face_mark.outputs[0], only_if.inputs["True"])
+
     join = N.new("GeometryNodeJoinGeometry")
     link(mark.outputs[0], join.inputs[0])
+    link(only_if.outputs[0], join.inputs[0])
     link(move.outputs[0], join.inputs[0])
     link(join.outputs[0], gout.inputs[0])
     for node, x, y in ((gin, -900, 0), (info, -650, -250), (sample, -400, -200), (move, -150, 0),
                        (group, -900, -450), (inverted, -650, -500), (pick_invert, -450, -450),
                        (pick_exists, -250, -450), (store_weight, -150, -300), (points, 50, -300),
-                       (mark, 250, -300), (join, 450, 0), (gout, 650, 0)):
+                       (mark, 250, -300), (faces, -450, -700), (face_points, 450, -700),
+                       (face_mark, 650, -700), (only_if, 850, -500), (join, 1050, 0), (gout, 1250, 0)):
         node.location = (x, y)
     ng[_TAG] = _VERSION
 
@@ -142,10 +183,12 @@ def set_input(mod, name, value):
         return
     current = mod.get(key)
     if isinstance(value, (bpy.types.ID, type(None))):
-        if current is not value:
-            mod[key] = value
-    elif current != value:
+        changed = current is not value
+    else:
+        changed = current != value
+    if changed:
         mod[key] = value
+        mod.id_data.update_tag()   # a raw input value tags nothing by itself
 
 
 def set_lattice(obj, lattice):
@@ -282,9 +325,10 @@ def _tap_cloud(ob_eval, depsgraph):
 
 
 def read_tap(ob_eval, depsgraph):
-    """(positions (V, 3) float32, weights (V,) float32) of the geometry that reached the VP-FFD
-    slot in this evaluation, in the object's space; None when no tap reached the end of the stack
-    (the modifier is off, or a later Geometry Nodes modifier dropped point clouds)."""
+    """(positions (V, 3) float32, weights (V,) float32, triangles (F, 3) int64 or None) of the
+    geometry that reached the VP-FFD slot in this evaluation, in the object's space; the
+    triangles only while the modifier's Tap Faces input is on. None when no tap reached the end of
+    the stack (the modifier is off, or a later Geometry Nodes modifier dropped point clouds)."""
     cloud, _alive = _tap_cloud(ob_eval, depsgraph)
     if cloud is None:
         return None
@@ -301,6 +345,21 @@ def read_tap(ob_eval, depsgraph):
     is_tap = np.empty(n, bool)
     mark.data.foreach_get("value", is_tap)
     co = co.reshape(-1, 3)
-    if not is_tap.all():       # a later modifier joined points of its own
+    tris = None
+    face_mark = attrs.get(FACE_ATTRIBUTE)
+    if face_mark is not None:
+        is_face = np.empty(n, bool)
+        face_mark.data.foreach_get("value", is_face)
+        corners = []
+        for name in CORNER_ATTRIBUTES:
+            attr = attrs.get(name)
+            if attr is None:
+                break
+            c = np.empty(n, np.int32)
+            attr.data.foreach_get("value", c)
+            corners.append(c[is_face])
+        if len(corners) == 3:
+            tris = np.stack(corners, 1).astype(np.int64)
+    if not is_tap.all():       # the face tap, or points that a later modifier joined
         co, w = co[is_tap], w[is_tap]
-    return co, w
+    return co, w, tris

@@ -414,8 +414,13 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         if extra:
             raise ValueError(f"one VP-FFD modifier per object: remove "
                              f"{', '.join(repr(m.name) for m in extra)}")
+        # Read what reached the slot before touching the modifier: writing its inputs tags the
+        # object, and Blender 4.4+ then refuses to hand out its evaluated geometry.
+        ob_eval = obj.evaluated_get(depsgraph)
+        tap = modifier.read_tap(ob_eval, depsgraph)
+        stale_weights = False
         if depsgraph.mode != "RENDER":
-            modifier.sync_inputs(obj, mod)
+            stale_weights = modifier.sync_inputs(obj, mod)
             helper = modifier.helper(obj, mod, exclusive_of=helpers_taken or ())
         else:
             helper = modifier.get_input(mod, modifier.SOLVER_INPUT)
@@ -429,8 +434,6 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             _set_stats(obj, error=_missing_control(lat_ob))
             return False
 
-        ob_eval = obj.evaluated_get(depsgraph)
-        tap = modifier.read_tap(ob_eval, depsgraph)
         if tap is None:
             if not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
                 _set_stats(obj, error="the VP-FFD modifier is switched off: switch it on to solve")
@@ -502,7 +505,9 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             raise ValueError("the solve produced non-finite offsets; nothing was written")
         offsets32 = _write(state, helper, offsets)
         seconds = time.perf_counter() - t0
-        state.signature, state.result = signature, result
+        # Weights read before the vertex-group input changed are the old group's: solve again
+        # after the evaluation that the change brings.
+        state.signature, state.result = (None if stale_weights else signature), result
         state.input = X
         state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
         edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)

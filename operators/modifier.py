@@ -180,7 +180,7 @@ def set_input(mod, name, value):
     """Set the modifier's input `name` when it differs (writing tags the object for evaluation)."""
     key = _identifier(mod, name)
     if key is None:
-        return
+        return False
     current = mod.get(key)
     if isinstance(value, (bpy.types.ID, type(None))):
         changed = current is not value
@@ -189,6 +189,7 @@ def set_input(mod, name, value):
     if changed:
         mod[key] = value
         mod.id_data.update_tag()   # a raw input value tags nothing by itself
+    return changed
 
 
 def set_lattice(obj, lattice):
@@ -199,14 +200,16 @@ def set_lattice(obj, lattice):
 
 
 def sync_inputs(obj, mod=None):
-    """Bring the modifier's lattice, vertex-group and invert inputs in line with obj.vpffd."""
+    """Bring the modifier's lattice, vertex-group and invert inputs in line with obj.vpffd.
+    Returns True when one changed (the object then waits for its next evaluation)."""
     mod = mod or find(obj)
     if mod is None:
-        return
+        return False
     s = obj.vpffd
-    set_input(mod, LATTICE_INPUT, s.lattice)
-    set_input(mod, GROUP_INPUT, s.vertex_group)
-    set_input(mod, INVERT_INPUT, bool(s.invert_vertex_group and s.vertex_group))
+    changed = [set_input(mod, LATTICE_INPUT, s.lattice),
+               set_input(mod, GROUP_INPUT, s.vertex_group),
+               set_input(mod, INVERT_INPUT, bool(s.invert_vertex_group and s.vertex_group))]
+    return any(changed)
 
 
 def find_all(obj):
@@ -313,7 +316,10 @@ def _tap_cloud(ob_eval, depsgraph):
     the cloud is read)."""
     get = getattr(ob_eval, "evaluated_geometry", None)
     if get is not None:        # newer Blender: the object's own geometry set
-        geometry = get()
+        try:
+            geometry = get()
+        except TypeError:      # tagged for an evaluation that has not run yet
+            return None, None
         return geometry.pointcloud, geometry
     original = ob_eval.original
     for inst in depsgraph.object_instances:

@@ -181,6 +181,7 @@ class _Bound:
         self.gpu_binding = None
         self.backend = ("CPU", "")
         self.settings = None
+        self.deleted = None     # name of the lattice that the user deleted, for the panel
         self.cage_model = self.cage_key = None
 
     @property
@@ -390,7 +391,10 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             return False
         mod = modifier.find(obj)
         if mod is None:
-            _set_stats(obj, error="the VP-FFD modifier was removed: Bind again, or Unbind")
+            if depsgraph.mode != "RENDER":
+                # Removed (X on the modifier) or applied (Ctrl+A): as with any modifier, the object
+                # is no longer deformed by it. Its settings stay for a later Bind.
+                release(obj)
             return False
         if not force and not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
             if depsgraph.mode != "RENDER":
@@ -429,10 +433,20 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         if helpers_taken is not None:
             helpers_taken.add(helper)
         lat_ob = s.lattice
+        if lat_ob is not None and not any(True for _ in lat_ob.users_scene) \
+                and depsgraph.mode != "RENDER":
+            # Deleted (X): Delete only unlinks an object that still has users, and these settings
+            # and the modifier's input are users. Let it go, as Blender's Lattice modifier does.
+            state.deleted = lat_ob.name
+            s.lattice = None
+            modifier.set_lattice(obj, None)
+            lat_ob = None
         if not _is_control(lat_ob):
             _zero_offsets(obj, state)
-            _set_stats(obj, error=_missing_control(lat_ob))
+            _set_stats(obj, error=(f"lattice '{state.deleted}' was deleted: pick another, or Unbind"
+                                   if lat_ob is None and state.deleted else _missing_control(lat_ob)))
             return False
+        state.deleted = None
 
         if tap is None:
             if not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
@@ -722,6 +736,17 @@ def _remove_attribute(mesh, name):
         mesh.attributes.remove(attr)
     if name in mesh:
         del mesh[name]
+
+
+def release(obj):
+    """Forget the binding of an object whose VP-FFD modifier is gone, leaving its settings, its
+    other modifiers (a baked cache's included) and its coordinates as they are."""
+    mesh = obj.data
+    if mesh.library is None:
+        for name in (PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
+            _remove_attribute(mesh, name)
+    obj.vpffd.is_bound = False
+    forget(obj)
 
 
 def unbind(obj):

@@ -1,0 +1,134 @@
+"""What Blender's own object and modifier operators do to a bound mesh, headless: they must leave
+it as they leave a mesh with Blender's Lattice modifier.
+
+- Delete (X) on the lattice: the lattice is freed (VP-FFD does not keep it alive or save it), the
+  mesh shows what reaches the VP-FFD slot undeformed, and the panel says why. A lattice still
+  linked in another scene only leaves this one and keeps deforming.
+- X on the VP-FFD modifier, or Blender's Apply (Ctrl+A) on it: the object is no longer bound and
+  no error stays behind; Apply leaves the deformed shape in the mesh.
+"""
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
+
+try:
+    from . import extension_harness as eh
+    from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+except ImportError:
+    import extension_harness as eh
+    from blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+
+
+@pytest.fixture
+def ext(vpffd):
+    eh.reset_scene()
+    bpy.context.scene.frame_set(1)
+    yield vpffd
+    eh.reset_scene()
+
+
+def _engine(ext):
+    return ext.module.operators.engine
+
+
+def _ball(name="Ball"):
+    v, f = core.icosphere(3, 0.8)
+    ob = bpy.data.objects.new(name, triangle_mesh(v, f, name))
+    bpy.context.scene.collection.objects.link(ob)
+    return ob
+
+
+def _lattice(name="Lattice"):
+    lt = bpy.data.lattices.new(name)
+    lt.points_u = lt.points_v = lt.points_w = 4
+    ob = bpy.data.objects.new(name, lt)
+    ob.scale = (2 / 3,) * 3
+    bpy.context.scene.collection.objects.link(ob)
+    co = np.empty(len(lt.points) * 3, np.float32)
+    lt.points.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] *= 0.5
+    lt.points.foreach_set("co_deform", co.ravel())
+    return ob
+
+
+def _bind(ob, **settings):
+    for k, v in settings.items():
+        setattr(ob.vpffd, k, v)
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        return bpy.ops.object.vpffd_bind()
+
+
+def _coords(ob):
+    return evaluated_world(ob)[0]
+
+
+def _delete(ob):
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob],
+                                   selected_editable_objects=[ob]):
+        assert bpy.ops.object.delete(use_global=False) == {"FINISHED"}
+    bpy.context.view_layer.update()
+
+
+def test_deleting_the_lattice_frees_it_and_the_mesh_shows_undeformed(ext, tmp_path):
+    ball, lat = _ball(), _lattice()
+    rest = _coords(ball)
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    assert np.abs(_coords(ball) - rest).max() > 0.05
+    _delete(lat)
+    bpy.context.scene.frame_set(2)
+    info = _engine(ext).stats(ball)
+    assert "'Lattice' was deleted" in info["error"]
+    np.testing.assert_array_equal(_coords(ball), rest)
+    assert ball.vpffd.lattice is None
+    lattice = bpy.data.objects.get("Lattice")
+    assert lattice is None or lattice.users == 0, "nothing of VP-FFD keeps the lattice alive"
+    path = str(tmp_path / "after_delete.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    assert "Lattice" not in bpy.data.objects, "the deleted lattice is not saved into the file"
+    assert bpy.data.objects["Ball"].vpffd.is_bound
+
+
+def test_a_lattice_linked_in_another_scene_only_leaves_this_one(ext):
+    ball, lat = _ball(), _lattice()
+    other = bpy.data.scenes.new("Other")
+    other.collection.objects.link(lat)
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    shown = _coords(ball)
+    _delete(lat)
+    bpy.context.scene.frame_set(2)
+    assert _engine(ext).stats(ball).get("error") is None
+    assert ball.vpffd.lattice is lat
+    np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
+
+
+def test_removing_the_modifier_unbinds_quietly(ext):
+    ball, lat = _ball(), _lattice()
+    rest = _coords(ball)
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    ball.modifiers.remove(ball.modifiers["VP-FFD"])
+    bpy.context.view_layer.update()
+    assert not ball.vpffd.is_bound and ball.vpffd.lattice is lat
+    assert _engine(ext).stats(ball).get("error") is None
+    np.testing.assert_array_equal(_coords(ball), rest)
+    assert not [a.name for a in ball.data.attributes if a.name.startswith("vpffd")]
+
+
+def test_blenders_apply_on_the_modifier_keeps_the_shape_and_unbinds(ext):
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XY") == {"FINISHED"}
+    shown = _coords(ball)
+    volume = evaluated_volume(ball)
+    with bpy.context.temp_override(object=ball, active_object=ball):
+        bpy.ops.object.modifier_apply(modifier="VP-FFD")
+    bpy.context.view_layer.update()
+    assert not ball.vpffd.is_bound
+    assert _engine(ext).stats(ball).get("error") is None
+    assert not ball.modifiers
+    np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
+    assert abs(evaluated_volume(ball) / volume - 1) <= 1e-6
+    assert len(ball.data.vertices) == len(shown), "only the mesh is applied, not VP-FFD's tap"

@@ -535,8 +535,9 @@ def _update(obj, depsgraph, force, helpers_taken=None):
                     closed=None if binding is None else binding.is_closed,
                     input_volume=result.input_volume, rebound=result.rebound)
         if result.input_volume:
-            info["volume_percent"] = 100.0 * result.volume / result.input_volume
-            info["plain_percent"] = 100.0 * result.plain_volume / result.input_volume
+            # Sizes: a lattice that mirrors space turns the volume's sign with the shape.
+            info["volume_percent"] = 100.0 * abs(result.volume / result.input_volume)
+            info["plain_percent"] = 100.0 * abs(result.plain_volume / result.input_volume)
         if binding is not None:
             if s.use_fold_attribute and faces_from == "mesh" and obj.data.library is None:
                 det = vp.jacobian_det(binding, result.points)

@@ -424,3 +424,38 @@ def test_solution_never_nan_with_conflicting_pins(bound, lat, sphere):
     sol = bound.solve(P, pins=[(0, v[0] + 0.1), (0, v[0] - 0.1)])
     assert np.isfinite(sol.verts).all() and np.isfinite(sol.points).all()
     assert any("pin" in w for w in sol.warnings)
+
+
+def test_a_mirroring_lattice_keeps_the_volumes_size_and_the_mirror():
+    """Points mirrored in Z: Blender's modifier mirrors the mesh (its signed volume turns). The
+    correction keeps |volume| = scale x |rest| with the mirrored sign, close to the plain mirrored
+    shape, instead of turning the mesh inside out to reach the rest volume's sign."""
+    v, f = vp.icosphere(3, 0.6)
+    lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    P = lat.rest_points.copy()
+    P[:, 2] *= -0.6                              # mirrored and squashed
+    b = vp.bind(lat, v, f)
+    sol = b.solve(P, axes="XY", volume_scale=1.2)
+    plain = b.deform(P)
+    assert vp.signed_volume(plain, f) < 0
+    assert abs(vp.signed_volume(sol.verts, f) / (-1.2 * b.rest_volume) - 1) <= 1e-9
+    assert any("mirrors space" in w for w in sol.warnings)
+    # Corrected along X and Y only: z stays the plain mirrored z, and the shape only widens.
+    np.testing.assert_allclose(sol.verts[:, 2], plain[:, 2], atol=1e-12)
+    away = np.abs(plain[:, :2]) > 0.05
+    assert (np.sign(sol.verts[:, :2]) == np.sign(plain[:, :2]))[away].all()
+
+
+def test_a_correction_beyond_the_lattice_diagonal_is_refused():
+    """A lattice flattened to a sheet: restoring the volume along X and Y would fling the points
+    far away. The plain deformation comes back, with a warning that says why."""
+    v, f = vp.icosphere(3, 0.6)
+    lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    P = lat.rest_points.copy()
+    P[:, 2] *= 1e-3
+    b = vp.bind(lat, v, f)
+    sol = b.solve(P, axes="XY")
+    assert any("correction was refused" in w for w in sol.warnings)
+    np.testing.assert_array_equal(sol.points, P)
+    np.testing.assert_allclose(sol.verts, b.deform(P), atol=1e-12)
+    assert sol.volume == pytest.approx(sol.plain_volume, rel=1e-9)

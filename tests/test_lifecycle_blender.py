@@ -132,3 +132,29 @@ def test_blenders_apply_on_the_modifier_keeps_the_shape_and_unbinds(ext):
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
     assert abs(evaluated_volume(ball) / volume - 1) <= 1e-6
     assert len(ball.data.vertices) == len(shown), "only the mesh is applied, not VP-FFD's tap"
+
+
+def test_a_mirroring_lattice_mirrors_the_mesh_and_keeps_its_volumes_size(ext):
+    """Lattice points mirrored in Z: the Lattice modifier mirrors the mesh; VP-FFD gives the
+    mirrored shape with |volume| kept (not a mesh turned inside out), and the panel says 100%."""
+    ball = _ball()
+    lat = _lattice()
+    co = np.empty(len(lat.data.points) * 3, np.float32)
+    lat.data.points.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] *= -0.7
+    lat.data.points.foreach_set("co_deform", co.ravel())
+    rest = evaluated_volume(ball)
+    assert _bind(ball, lattice=lat, axes="XY") == {"FINISHED"}
+    plain = bpy.data.objects.new("Plain", ball.data.copy())
+    bpy.context.scene.collection.objects.link(plain)
+    plain.modifiers.clear()
+    plain.modifiers.new("Lattice", "LATTICE").object = lat
+    bpy.context.scene.frame_set(2)
+    ours, theirs = _coords(ball), _coords(plain)
+    assert evaluated_volume(plain) < 0 and evaluated_volume(ball) < 0
+    assert abs(evaluated_volume(ball) / -rest - 1) <= 1e-5
+    np.testing.assert_allclose(ours[:, 2], theirs[:, 2], atol=1e-5)   # XY only: z is the mirror's
+    info = _engine(ext).stats(ball)
+    assert abs(info["volume_percent"] - 100) <= 1e-3
+    assert any("mirrors space" in w for w in info["warnings"])

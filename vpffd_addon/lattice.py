@@ -13,6 +13,11 @@ class Bounded:
         return 0.5 * (self.lo + self.hi)
 
     @property
+    def diagonal(self):
+        """Length of the bounds' diagonal: the most a correction may move a control point."""
+        return float(np.linalg.norm(self.hi - self.lo)) or 1.0
+
+    @property
     def size(self):
         """Largest extent of the bounds (1.0 when there is no extent): the length scale."""
         extent = float((self.hi - self.lo).max())

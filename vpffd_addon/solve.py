@@ -130,6 +130,8 @@ class _State:
         self.used = np.zeros(len(targets), bool)    # volume rows that could move at least once
         self.unmet_pins = set()
         self.skipped = []                            # steps refused as absurd, in words
+        self.plain = None                            # (k,) volumes of the plain deformation
+        self.mirrored = False                        # whether some target's sign was turned
         f32 = b.dtype == np.float32
         self.degenerate = tol.DEGENERATE_REL_F32 if f32 else tol.DEGENERATE_REL_F64
         self.met_rel = tol.MET_REL_F32 if f32 else tol.MET_REL_F64
@@ -199,6 +201,14 @@ class _State:
             e = np.eye(3)[axis]  # -X corrects exactly as +X: t absorbs the sign
         alpha = self.alpha_rows(g) if preserve_volume else None
         before = self.volumes = self.measure(e, axis, g, base, alpha)
+        if self.plain is None:
+            # The target is on the volume's magnitude: where the lattice mirrors space (the plain
+            # deformation turns a volume's sign), the mirrored shape keeps its size instead of
+            # being turned inside out to reach the rest volume's sign.
+            self.plain = before.copy()
+            flip = (np.sign(before) * np.sign(self.targets)) < 0
+            self.targets[flip] *= -1.0
+            self.mirrored = bool(flip.any())
         rows, rhs = [], []
         if preserve_volume:
             # A row is degenerate when its coefficients are negligible next to the total volume
@@ -320,6 +330,19 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     if st.unmet_pins:
         warnings.append(f"pins on vertices {sorted(st.unmet_pins)} could not reach their targets "
                         "(conflicting pins, immobile control points or missing directions)")
+    if st.mirrored:
+        warnings.append("the lattice mirrors space here: the mirrored shape keeps the size of the "
+                        "volume (its sign turns with it)")
+    P_in = np.asarray(points, dtype=np.float64)
+    reach = float(np.linalg.norm(st.P - P_in, axis=1).max()) if len(P_in) else 0.0
+    if reach > b.lattice.diagonal:
+        # A correction this large is no correction but a different shape (a lattice flattened
+        # across a direction, a fold): show the plain deformation and say why.
+        warnings = [f"the correction was refused: it would move lattice points by "
+                    f"{reach / b.lattice.diagonal:.3g} times the lattice's diagonal (the lattice is "
+                    "flat or folded along the correction directions); the plain deformation is shown"]
+        st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets)
+        st.volumes = plain
     st.ensure(0, 1, 2)
     if not (np.isfinite(st.X).all() and np.isfinite(st.P).all() and np.isfinite(st.volumes).all()
             and np.isfinite(plain).all()):

@@ -476,6 +476,12 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             raise ValueError(f"lattice '{lat_ob.name}' has {len(points)} points, expected {lattice.n_points}")
         M_lat = meshio.matrix(lat_eval.matrix_world)
         M_ob = meshio.matrix(ob_eval.matrix_world)
+        for what, M in (("lattice", M_lat), ("mesh", M_ob)):
+            if not abs(np.linalg.det(M[:3, :3])) > 1e-30:
+                name = lat_ob.name if what == "lattice" else obj.name
+                raise ValueError(f"the {what} object '{name}' is scaled to zero along an axis on this "
+                                 "frame: there is no lattice space to deform in (the mesh shows "
+                                 "undeformed)")
         L = np.linalg.inv(M_lat) @ M_ob
         axes, directions = _directions(s, M_lat)
         tris, faces_from = _faces(state, obj, ob_eval, len(X), tapped_tris, mod,

@@ -147,3 +147,15 @@ def test_pipeline_without_faces_gives_the_plain_deformation_only():
     assert without.volume is None and without.binding is None
     with pytest.raises(ValueError, match="no faces"):
         vp.Pipeline().evaluate(_frame_inputs(v, None, lat, (0, 0, 0), 0.6))
+
+
+def test_a_frame_that_cannot_be_corrected_gives_the_plain_deformation_and_says_why():
+    """A lattice with one point per axis only translates: no correction can change the volume.
+    The frame gives the plain result (the Lattice modifier's) and a warning in words."""
+    v, f = vp.icosphere(2, 0.6)
+    lat = vp.Lattice((1, 1, 1), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    inp = vp.FrameInputs(positions=v.astype(np.float32), tris=f, lattice=lat,
+                         points=lat.rest_points + 0.1, matrix=np.eye(4), axes="XYZ", volume_scale=1.5)
+    res = vp.Pipeline().evaluate(inp)
+    assert any("not corrected on this frame" in w for w in res.warnings)
+    np.testing.assert_allclose(res.positions, v.astype(np.float32) + 0.1, atol=1e-6)

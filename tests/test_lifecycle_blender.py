@@ -158,3 +158,26 @@ def test_a_mirroring_lattice_mirrors_the_mesh_and_keeps_its_volumes_size(ext):
     info = _engine(ext).stats(ball)
     assert abs(info["volume_percent"] - 100) <= 1e-3
     assert any("mirrors space" in w for w in info["warnings"])
+
+
+def test_a_frame_that_cannot_be_solved_shows_the_same_whatever_came_before(ext):
+    """The lattice's Z scale keyed to 0 on frame 10: there is no lattice space that frame. The mesh
+    shows its input undeformed and the panel says why in words, reached from any other frame."""
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    for f, z in ((1, 2 / 3), (10, 0.0), (18, 2 / 3)):
+        lat.scale = (2 / 3, 2 / 3, z)
+        lat.keyframe_insert("scale", frame=f)
+    rest = np.array([v.co for v in ball.data.vertices])
+    scene = bpy.context.scene
+    seen = []
+    for before in (1, 9, 18, 10):
+        scene.frame_set(before)
+        scene.frame_set(10)
+        seen.append(_coords(ball))
+        assert "scaled to zero" in _engine(ext).stats(ball)["error"]
+    for shown in seen[1:]:
+        np.testing.assert_array_equal(shown, seen[0])
+    np.testing.assert_allclose(seen[0], rest, atol=1e-6)
+    scene.frame_set(5)
+    assert _engine(ext).stats(ball).get("error") is None

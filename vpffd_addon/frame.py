@@ -161,13 +161,23 @@ class Pipeline:
             options = dict(axes=inp.axes, directions=inp.directions, volume_scale=inp.volume_scale,
                            preserve_volume=bool(inp.axes or inp.directions is not None),
                            mobility=inp.mobility, pins=inp.pins, islands=inp.islands)
-            if self.solver is not None:
-                sol = self.solver(binding, P_used, options)
+            try:
+                if self.solver is not None:
+                    sol = self.solver(binding, P_used, options)
+                else:
+                    sol = binding.solve(P_used, **options)
+            except ValueError as exc:
+                # No correction is possible on this frame: it shows the plain deformation, as the
+                # Lattice modifier would, and says why; the next frame is solved afresh.
+                sol = None
+                warnings.append(f"the volume is not corrected on this frame: {exc}")
+            if sol is not None:
+                solution = sol
+                out, used, volume, plain = sol.verts, sol.points, sol.volume, sol.plain_volume
+                warnings.extend(sol.warnings)
             else:
-                sol = binding.solve(P_used, **options)
-            solution = sol
-            out, used, volume, plain = sol.verts, sol.points, sol.volume, sol.plain_volume
-            warnings.extend(sol.warnings)
+                sol = binding.solve(P_used, axes="", preserve_volume=False)
+                out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
         else:
             sol = binding.solve(P_used, axes="", preserve_volume=False)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume

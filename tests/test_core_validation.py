@@ -459,3 +459,26 @@ def test_a_correction_beyond_the_lattice_diagonal_is_refused():
     np.testing.assert_array_equal(sol.points, P)
     np.testing.assert_allclose(sol.verts, b.deform(P), atol=1e-12)
     assert sol.volume == pytest.approx(sol.plain_volume, rel=1e-9)
+
+
+def test_islands_the_lattice_cannot_reach_are_named_with_their_miss():
+    """Five concentric shells in a 3x3x3 lattice: its few points cannot give each shell its own
+    volume. The warning names the islands that miss and by how much."""
+    rng = np.random.default_rng(3)
+    vs, fs, n = [], [], 0
+    for r, flip in ((0.6, False), (0.55, True), (0.3, False), (0.28, True), (0.1, False)):
+        v, f = vp.icosphere(3, r)
+        vs.append(v)
+        fs.append((f[:, ::-1] if flip else f) + n)
+        n += len(v)
+    v, f = np.concatenate(vs), np.concatenate(fs)
+    lat = vp.Lattice((3, 3, 3), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    P = lat.rest_points.copy()
+    P[:, 2] *= 0.5
+    P += rng.normal(0, 0.05, P.shape)
+    sol = vp.bind(lat, v, f).solve(P, axes="XYZ", islands=True)
+    miss = np.abs(sol.island_volumes / sol.island_target_volumes - 1)
+    worst = int(np.argmax(miss))
+    assert miss[worst] > 1e-6
+    (text,) = sol.warnings
+    assert f"{worst} ({miss[worst]:.2g})" in text and "relative miss" in text

@@ -14,6 +14,7 @@ import numpy as np
 from . import tolerances as tol
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
+_JOINT_ITERATIONS = 10   # Gauss-Newton steps for islands and pins (4 sufficed on real meshes)
 _OVERFLOW = "the correction overflowed: coordinates or displacements are too large for floating point"
 
 
@@ -250,17 +251,72 @@ class _State:
         if n_pins:
             missed = np.abs((C @ t - r)[len(r) - n_pins:]) > self.met_rel * b.lattice.size
             self.unmet_pins.update(self.pin_index[missed].tolist())
+        self.move(e, axis, t)
+        self.volumes = self.measure(e, axis, g, base, alpha)
+        return before
+
+    def move(self, e, axis, t):
+        """Move the control points by t (N,) along unit direction e (`axis` when e is one)."""
         if axis is not None:
             self.D[:, axis] += t
             self.P[:, axis] += t
             self.fresh[axis] = False
         else:
-            self.X += (e[:, None] * b._forward(t)).astype(self.X.dtype)
+            self.X += (e[:, None] * self.b._forward(t)).astype(self.X.dtype)
             self.D += t[:, None] * e
             self.P += t[:, None] * e
             self.corners.clear()
-        self.volumes = self.measure(e, axis, g, base, alpha)
-        return before
+
+    def joint(self, dirs, preserve_volume):
+        """One Gauss-Newton step over all directions at once: the volume rows (one per island)
+        linearised along every direction, the pin rows (exact: a pinned point is linear in the
+        control points), all solved together, minimum-norm in the mobility metric. Returns False
+        when there is nothing to do (no usable row, or an absurd step, which is refused)."""
+        b = self.b
+        blocks, grads = [], []
+        for e in dirs:
+            axis, g, base = self.gradient(e)
+            e = np.eye(3)[axis] if axis is not None else e
+            grads.append((e, axis, g, base))
+            blocks.append(self.alpha_rows(g) if preserve_volume else None)
+        e0, axis0, g0, base0 = grads[0]
+        self.volumes = self.measure(e0, axis0, g0, base0, blocks[0])
+        rows, rhs = [], []
+        k, N, m = len(self.targets), b.lattice.n_points, len(dirs)
+        if preserve_volume:
+            J = np.concatenate(blocks, axis=1)                      # (k, m N)
+            r = self.targets - self.volumes
+            usable = np.linalg.norm(J, axis=1) > 0
+            rows.extend(J[usable])
+            rhs.extend(r[usable])
+        if self.pin_rows is not None:
+            x_pin = self.pin_rows @ self.D + b.x0[:, self.pin_slots].T
+            for d, (e, _, _, _) in enumerate(grads):
+                block = np.zeros((len(self.pin_rows), m * N))
+                block[:, d * N:(d + 1) * N] = self.pin_rows
+                rows.extend(block)
+                rhs.extend((self.pin_targets - x_pin) @ e)
+        if not rows:
+            return False
+        C, r = np.array(rows), np.array(rhs)
+        mob = np.ones(m * N) if self.mob is None else np.tile(self.mob, m)
+        CM = C * mob
+        gram = CM @ C.T
+        if not (np.isfinite(gram).all() and np.isfinite(r).all()):
+            raise ValueError(_OVERFLOW)
+        lam = np.linalg.lstsq(gram, r, rcond=tol.GRAM_RCOND)[0]
+        t = CM.T @ lam
+        if not np.isfinite(t).all() or np.abs(t).max(initial=0.0) > tol.MAX_STEP_LATTICE * b.lattice.size:
+            return False
+        for d, (e, axis, _, _) in enumerate(grads):
+            self.move(e, axis, t[d * N:(d + 1) * N])
+        return True
+
+    def pins_met(self):
+        if self.pin_rows is None:
+            return True
+        x_pin = self.pin_rows @ self.D + self.b.x0[:, self.pin_slots].T
+        return bool((np.abs(x_pin - self.pin_targets).max(1) <= self.met_rel * self.b.lattice.size).all())
 
 
 def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
@@ -311,12 +367,34 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
             st.step(e, 1, preserve_volume)
             if st.volume_met().all():
                 break
+    if m and (islands or len(pin_slots)) and not (st.volume_met().all() and st.pins_met()):
+        # Several volume rows (islands) or pins compete for the same control points along one
+        # direction at a time; solved jointly over all directions, and iterated (each volume is
+        # cubic in simultaneous moves), they meet wherever the lattice has the freedom.
+        for _ in range(_JOINT_ITERATIONS):
+            if not st.joint(dirs, preserve_volume):
+                break
+            e = dirs[0]
+            st.volumes = st.measure(e, *st.gradient(e), None)
+            if (not preserve_volume or st.volume_met().all()) and st.pins_met():
+                st.unmet_pins.clear()
+                break
+        if st.pins_met():
+            st.unmet_pins.clear()
+    if preserve_volume and m and not st.volume_met().all():
         unmet = ~st.volume_met()
         if unmet.any():
             if not st.used.any():
                 raise ValueError("the volume cannot change along any of the correction directions "
                                  "(no lattice influence, all mobility 0, or a lattice with one point per axis)")
-            what = "the volume" if not islands else f"the volume of islands {np.flatnonzero(unmet).tolist()}"
+            miss = np.abs(st.volumes - st.targets) / np.maximum(np.abs(st.targets), 1e-300)
+            if islands:
+                worst = np.flatnonzero(unmet)[np.argsort(-miss[unmet])]
+                listed = ", ".join(f"{i} ({miss[i]:.2g})" for i in worst[:8])
+                more = f" and {len(worst) - 8} more" if len(worst) > 8 else ""
+                what = f"the volume of islands {listed}{more} (relative miss)"
+            else:
+                what = f"the volume (missed by {float(miss[0]):.2g} of the target)"
             warnings.append(f"{what} could not reach the target along the given directions")
     if preserve_volume and m:
         noise = b.rest_volume_noise if islands else np.array([b.rest_volume_noise.sum()])

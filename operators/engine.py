@@ -500,7 +500,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
                             "vertex count); they are passed along from the next evaluation on")
             correct = False
         settings = (axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
-                    s.use_fold_attribute, cage_options, faces_from, type(lattice).__name__,
+                    s.use_fold_attribute, cage_options, faces_from, state.faces_key, type(lattice).__name__,
                     getattr(lattice, "shape", None), getattr(lattice, "interpolation", None))
         arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions,
                   tris if faces_from == "tap" else None)

@@ -1118,7 +1118,8 @@ class BlenderFuzz(RuleBasedStateMachine):
         v_now, flux_now = _volume(now_l - origin, tris)
         if not (np.isfinite(v_rest) and np.isfinite(v_now)) or v_rest == 0:
             return
-        reported = info["volume_percent"] / 100.0 * v_rest
+        # The panel gives sizes (a lattice that mirrors space turns the volume's sign with it).
+        reported = info["volume_percent"] / 100.0 * abs(v_rest) * (1.0 if v_now >= 0 else -1.0)
         scale = max(abs(v_rest), abs(v_now))
         # The evaluated coordinates are float32: each is off by up to eps * its magnitude (in
         # object space), which moves the volume by up to that times the surface area.

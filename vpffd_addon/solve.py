@@ -319,6 +319,17 @@ class _State:
         return bool((np.abs(x_pin - self.pin_targets).max(1) <= self.met_rel * self.b.lattice.size).all())
 
 
+def _volumes(b, verts, islands):
+    """(k,) float64 volumes of `verts` (V, 3), per island or in total, about the binding's origins."""
+    rel = verts - b._origins(np.arange(b.n_verts))
+    t = b.topology.tris
+    a, c, d = rel[t[:, 0]], rel[t[:, 1]], rel[t[:, 2]]
+    face = np.einsum("ij,ij->i", a, np.cross(c, d)) / 6.0
+    if islands:
+        return np.bincount(b.topology.face_island, face, b.n_islands)
+    return np.array([face.sum()])
+
+
 def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
           mobility=None, pins=(), islands=False):
     """Volume-preserving FFD of `binding` for control points `points` (N, 3).
@@ -420,7 +431,11 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
                     f"{reach / b.lattice.diagonal:.3g} times the lattice's diagonal (the lattice is "
                     "flat or folded along the correction directions); the plain deformation is shown"]
         st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets)
-        st.volumes = plain
+        st.ensure(0, 1, 2)
+        # Measured again in float64 from the positions: a lattice this distorted makes the
+        # gradient's float32 terms cancel far beyond what the shape's own rounding allows.
+        st.volumes = _volumes(b, b._to_verts(st.X), bool(islands))
+        plain = st.volumes
     st.ensure(0, 1, 2)
     if not (np.isfinite(st.X).all() and np.isfinite(st.P).all() and np.isfinite(st.volumes).all()
             and np.isfinite(plain).all()):

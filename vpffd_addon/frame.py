@@ -92,9 +92,23 @@ class Pipeline:
         self.topology = None
         self.binding = None
         self._binding_key = None
+        self._last_space = None
 
     def clear(self):
         self.topology = self.binding = self._binding_key = None
+        self._last_space = None
+
+    def _lattice_space(self, positions, M):
+        """`positions` (V, 3) in lattice space, float64; the last frame's when its positions and
+        matrix were the same (most frames of a lattice animation: only the lattice moves)."""
+        X = np.asarray(positions)
+        last = self._last_space
+        if last is not None and last[1].shape == X.shape and np.array_equal(last[0], M) \
+                and np.array_equal(last[1], X):
+            return last[2]
+        verts = _transform(X.astype(np.float64), M)
+        self._last_space = (M.copy(), X.copy(), verts)
+        return verts
 
     def _topology(self, tris, n_verts):
         t = self.topology
@@ -127,7 +141,6 @@ class Pipeline:
 
     def evaluate(self, inp):
         """The `FrameResult` of `inp`. Raises ValueError for inputs that give no defined result."""
-        X = np.asarray(inp.positions, dtype=np.float64)
         M = np.asarray(inp.matrix, dtype=np.float64)
         lat = inp.lattice
         if not isinstance(lat, (Lattice, Cage)):
@@ -136,8 +149,8 @@ class Pipeline:
         P = np.asarray(inp.points, dtype=np.float64)
         if P.shape != grid.shape:
             raise ValueError(f"points must have shape {grid.shape}, got {P.shape}")
-        verts = _transform(X, M)
-        weights = np.ones(len(X)) if inp.weights is None else np.asarray(inp.weights, np.float64)
+        verts = self._lattice_space(inp.positions, M)
+        weights = np.ones(len(verts)) if inp.weights is None else np.asarray(inp.weights, np.float64)
         influence = weights
         if inp.lattice_weights is not None:
             if isinstance(lat, Cage):

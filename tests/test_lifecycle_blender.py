@@ -181,3 +181,24 @@ def test_a_frame_that_cannot_be_solved_shows_the_same_whatever_came_before(ext):
     np.testing.assert_allclose(seen[0], rest, atol=1e-6)
     scene.frame_set(5)
     assert _engine(ext).stats(ball).get("error") is None
+
+
+def test_vpffd_apply_needs_its_input_to_be_the_meshs_own_coordinates(ext):
+    """VP-FFD's own Apply writes the result into the mesh: refused (nothing changed) while an
+    enabled modifier comes before it; with it first, the mesh takes the shown shape."""
+    ball, lat = _ball(), _lattice()
+    smooth = ball.modifiers.new("Smooth", "SMOOTH")
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    own = np.array([v.co for v in ball.data.vertices])
+    with bpy.context.temp_override(object=ball, active_object=ball, selected_objects=[ball]):
+        with pytest.raises(RuntimeError, match="modifiers before VP-FFD"):
+            bpy.ops.object.vpffd_apply()
+    np.testing.assert_array_equal(np.array([v.co for v in ball.data.vertices]), own)
+    assert ball.vpffd.is_bound
+    smooth.show_viewport = False
+    shown = _coords(ball)
+    with bpy.context.temp_override(object=ball, active_object=ball, selected_objects=[ball]):
+        assert bpy.ops.object.vpffd_apply() == {"FINISHED"}
+    assert not ball.vpffd.is_bound
+    ball.modifiers.remove(smooth)
+    np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)

@@ -56,22 +56,8 @@ def _mesh_object(bpy, verts, tris):
 
 
 def _lattice(bpy):
-    lt = bpy.data.lattices.new("Lattice")
-    lt.points_u, lt.points_v, lt.points_w = LATTICE
-    for a in "uvw":
-        setattr(lt, f"interpolation_type_{a}", "KEY_BSPLINE")
-    ob = bpy.data.objects.new("Lattice", lt)
-    ob.scale = (1.0 / (LATTICE[0] - 1),) * 3          # spans [-0.5, 0.5]
-    bpy.context.scene.collection.objects.link(ob)
-    ob.shape_key_add(name="Basis")
-    key = ob.shape_key_add(name="Squash")
-    co = np.empty(len(lt.points) * 3, np.float32)
-    lt.points.foreach_get("co", co)
-    co = co.reshape(-1, 3)
-    co[:, 2] *= 0.6
-    co[:, :2] *= 1.0 + 0.15 * np.cos(co[:, 2:3])
-    key.data.foreach_set("co", co.ravel())
-    return ob, key
+    from blender_ref import squash_lattice
+    return squash_lattice("Lattice", LATTICE, (1.0 / (LATTICE[0] - 1),) * 3, 0.6, 0.15)  # [-0.5, 0.5]
 
 
 def _scene(bpy, eh, scenario, slot, verts, tris):

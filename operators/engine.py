@@ -784,6 +784,21 @@ def _enabled_before(obj, mod):
     return names
 
 
+def _solved_output(obj, depsgraph, why):
+    """Solve the current frame; (V, 3) float32 slot output, one position per mesh vertex, or
+    BindError (the solve's error, or `why` when the slot's point count is not the mesh's)."""
+    update(obj, depsgraph, force=True)
+    info = status(obj)
+    if info.error:
+        raise BindError(info.error)
+    co = slot_output(obj)
+    n = len(obj.data.vertices)
+    if co is None or len(co) != n:
+        raise BindError(f"{0 if co is None else len(co)} points reach VP-FFD but the mesh has {n} "
+                        f"vertices: {why}")
+    return co
+
+
 def save_shape_key(obj, depsgraph, name="VP-FFD"):
     """Add a shape key holding what the VP-FFD slot gives on the current frame (Blender cannot
     apply a Geometry Nodes modifier as a shape key). Returns (key name, names of the enabled
@@ -792,14 +807,7 @@ def save_shape_key(obj, depsgraph, name="VP-FFD"):
     mod = modifier.find(obj)
     if mod is None:
         raise BindError("the VP-FFD modifier was removed: Bind again, or Unbind")
-    update(obj, depsgraph, force=True)
-    info = status(obj)
-    if info.error:
-        raise BindError(info.error)
-    co = slot_output(obj)
-    if co is None or len(co) != len(mesh.vertices):
-        raise BindError(f"{0 if co is None else len(co)} points reach VP-FFD but the mesh has "
-                        f"{len(mesh.vertices)} vertices: a shape key needs one position per vertex")
+    co = _solved_output(obj, depsgraph, "a shape key needs one position per vertex")
     before = _enabled_before(obj, mod)
     co = co.copy()
     if mesh.shape_keys is None:
@@ -827,13 +835,7 @@ def apply(obj, depsgraph):
     if before:
         raise BindError(f"modifiers before VP-FFD ({', '.join(before)}) would be applied with it: "
                         "apply them first, or move VP-FFD to the top")
-    update(obj, depsgraph, force=True)
-    info = status(obj)
-    if info.error:
-        raise BindError(info.error)
-    co = slot_output(obj)
-    if co is None or len(co) != len(mesh.vertices):
-        raise BindError("the VP-FFD result does not match the mesh's vertices: Re-bind")
+    co = _solved_output(obj, depsgraph, "applying needs one position per vertex")
     co = co.copy()
     unbind(obj)
     mesh.vertices.foreach_set("co", co.astype(np.float32).ravel())

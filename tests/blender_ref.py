@@ -212,3 +212,26 @@ def bone_weights_by_height(ob, blend):
     t = np.clip((co[2::3] + blend) / (2 * blend), 0, 1)
     _add_vertex_group(ob, 1 - t, "Lower")
     _add_vertex_group(ob, t, "Upper")
+
+
+def squash_lattice(name, shape, scale, squash, bulge, shear=0.0):
+    """A B-spline lattice object linked to the scene, scaled by `scale` (3,), with a shape key
+    "Squash" that scales its z by `squash`, widens x and y by 1 + bulge * cos(z) and shears x by
+    shear * z. Returns (object, shape key) with the key's value left at 0."""
+    lt = bpy.data.lattices.new(name)
+    lt.points_u, lt.points_v, lt.points_w = shape
+    for a in "uvw":
+        setattr(lt, f"interpolation_type_{a}", "KEY_BSPLINE")
+    ob = bpy.data.objects.new(name, lt)
+    ob.scale = scale
+    bpy.context.scene.collection.objects.link(ob)
+    ob.shape_key_add(name="Basis")
+    key = ob.shape_key_add(name="Squash")
+    co = np.empty(len(lt.points) * 3, np.float32)
+    lt.points.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] *= squash
+    co[:, :2] *= 1.0 + bulge * np.cos(co[:, 2:3])
+    co[:, 0] += shear * co[:, 2]
+    key.data.foreach_set("co", co.ravel())
+    return ob, key

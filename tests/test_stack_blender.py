@@ -20,11 +20,11 @@ import vpffd_addon as core  # noqa: E402  (repository copy: only for building te
 try:
     from . import extension_harness as eh
     from .blender_ref import (bone_weights_by_height, evaluated_volume, evaluated_world,
-                              triangle_mesh, two_bone_armature)
+                              squash_lattice, triangle_mesh, two_bone_armature)
 except ImportError:
     import extension_harness as eh
     from blender_ref import (bone_weights_by_height, evaluated_volume, evaluated_world,
-                             triangle_mesh, two_bone_armature)
+                             squash_lattice, triangle_mesh, two_bone_armature)
 
 FRAMES = (1, 7, 14, 20)
 SHAPE_TOL = 1e-5      # of the object's size
@@ -48,22 +48,7 @@ def _engine(ext):
 
 def _lattice():
     """A 4x4x4 B-spline lattice around the mesh whose shape key squashes it (frames 1 -> 20)."""
-    lt = bpy.data.lattices.new("Lattice")
-    lt.points_u = lt.points_v = lt.points_w = 4
-    for a in "uvw":
-        setattr(lt, f"interpolation_type_{a}", "KEY_BSPLINE")
-    ob = bpy.data.objects.new("Lattice", lt)
-    ob.scale = (0.8, 0.8, 1.1)
-    bpy.context.scene.collection.objects.link(ob)
-    ob.shape_key_add(name="Basis")
-    key = ob.shape_key_add(name="Squash")
-    co = np.empty(len(lt.points) * 3, np.float32)
-    lt.points.foreach_get("co", co)
-    co = co.reshape(-1, 3)
-    co[:, 2] *= 0.55
-    co[:, :2] *= 1.0 + 0.3 * np.cos(co[:, 2:3])
-    co[:, 0] += 0.2 * co[:, 2]
-    key.data.foreach_set("co", co.ravel())
+    ob, key = squash_lattice("Lattice", (4, 4, 4), (0.8, 0.8, 1.1), 0.55, 0.3, shear=0.2)
     for f, v in ((1, 0.0), (20, 1.0)):
         key.value = v
         key.keyframe_insert("value", frame=f)

@@ -314,6 +314,19 @@ def build_squeezed_tube(scene, depsgraph=None):
 
 # ----------------------------------------------------------------------------------- operators
 
+def _select_first_corrected(scene):
+    """Leave the first VP-FFD object that corrects the volume active and alone selected, so that
+    the Properties editor shows its panel right away."""
+    bound = sorted((ob for ob in scene.objects if ob.type == "MESH" and ob.vpffd.is_bound
+                    and ob.vpffd.axes != "NONE"), key=lambda ob: ob.name)
+    if not bound:
+        return
+    for layer in scene.view_layers:
+        for ob in layer.objects:
+            ob.select_set(ob == bound[0], view_layer=layer)
+        layer.objects.active = bound[0]
+
+
 class _DemoOperator:
     bl_options = {"REGISTER", "UNDO"}
     new_scene: bpy.props.BoolProperty(
@@ -331,6 +344,7 @@ class _DemoOperator:
         except (engine.BindError, ValueError) as exc:
             self.report({"ERROR"}, f"VP-FFD: {exc}")
             return {"CANCELLED"}
+        _select_first_corrected(scene)
         return {"FINISHED"}
 
 

@@ -79,6 +79,15 @@ def _build(demo):
     return scene, variants
 
 
+@pytest.mark.parametrize("demo", sorted(DEMO_KEYS))
+def test_a_demo_leaves_a_vpffd_object_active_and_selected(ext, demo):
+    """So that the Properties editor shows the VP-FFD panel right after Add > VP-FFD Demos."""
+    scene, _ = _build(demo)
+    active = bpy.context.view_layer.objects.active
+    assert active is not None and active.vpffd.is_bound and active.vpffd.axes != "NONE"
+    assert [ob for ob in scene.objects if ob.select_get()] == [active]
+
+
 def _step_all(scene, variants):
     """(frames, ratios (F, n) of volume to rest volume) over every frame of the scene."""
     scene.frame_set(scene.frame_start)

@@ -4,8 +4,8 @@ Every update reads what reached the VP-FFD slot (the modifier's tap), the evalua
 settings, hands them to the pipeline, and writes the resulting offsets into the modifier's solver
 helper; Blender then evaluates the object again with them (docs/stack.md). Everything a bound
 object needs survives in the .blend: the settings (`obj.vpffd`), the mesh's own coordinates (never
-written), the pins (a mesh attribute written at Bind), the VP-FFD modifier and its helper. The
-pipeline's caches are rebuilt on demand, e.g. after loading a file.
+written), the VP-FFD modifier and its solver helper (which also keeps what Bind saves: pins, a
+cage's rest shape). The pipeline's caches are rebuilt on demand, e.g. after loading a file.
 """
 import dataclasses
 import time
@@ -173,7 +173,6 @@ class _Bound:
         self.faces = self.faces_key = None
         self.signature = None
         self.result = None
-        self.input = None       # (V, 3) float32 slot input of the last solve (object space)
         self.output = None      # (V, 3) float32 slot output of the last solve
         self.written = None     # offsets last written to the solver helper
         self.overlay = None
@@ -273,16 +272,12 @@ def _lattice_rest(lat_ob, s):
     interp = (data.interpolation_type_u, data.interpolation_type_v, data.interpolation_type_w)
     entry = _lattice_entry(lat_ob)
     if not data.is_editmode:
-        grid = meshio.lattice_points(data, "co")
-        entry["grid"] = grid
-        lattice = vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0)))
-        return lattice, grid
+        entry["grid"] = meshio.lattice_points(data, "co")
     grid = entry["grid"]
-    if grid is not None and len(grid) == len(data.points):
-        return vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0))), grid
-    lo, hi = np.array(s.lattice_rest_lo), np.array(s.lattice_rest_hi)
-    lattice = vp.Lattice(shape, interp, bounds=(lo, hi))   # the bounds saved at Bind
-    return lattice, lattice.rest_points
+    if grid is None or len(grid) != len(data.points):
+        lattice = vp.Lattice(shape, interp, bounds=(s.lattice_rest_lo, s.lattice_rest_hi))  # Bind's
+        return lattice, lattice.rest_points
+    return vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0))), grid
 
 
 def _lattice_group(lat_ob, name):
@@ -371,6 +366,14 @@ def _write(state, helper, offsets):
     return values
 
 
+def _pause(obj, **changes):
+    """Keep the last figures with `changes` made to them, and have the next update solve again."""
+    _set_stats(obj, **{**dataclasses.asdict(status(obj)), **changes})
+    state = _cache.get(obj.session_uid)
+    if state is not None:
+        state.signature = None
+
+
 def update(obj, depsgraph, force=False):
     """Solve the current frame for a bound object and write its offsets. Never raises: problems
     go to the panel (`status(obj).error`) and the console. Returns True when a solve ran.
@@ -400,16 +403,10 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             if depsgraph.mode != "RENDER":
                 # Switched off in the viewport: the panel says so instead of an error of an earlier
                 # solve (the last figures stay, e.g. from Check Folds); switching it on solves again.
-                _set_stats(obj, **{**dataclasses.asdict(status(obj)), "error": None, "switched_off": True})
-                state = _cache.get(uid)
-                if state is not None:
-                    state.signature = None
+                _pause(obj, error=None, switched_off=True)
             return False  # switched off for this evaluation, like any modifier
         if obj.mode == "EDIT":
-            _set_stats(obj, **{**dataclasses.asdict(status(obj)), "error": "paused while the mesh is in Edit Mode"})
-            state = _cache.get(uid)
-            if state is not None:
-                state.signature = None   # leaving Edit Mode solves again, which clears the message
+            _pause(obj, error="paused while the mesh is in Edit Mode")   # leaving it solves again
             return False
         state = _cache.get(uid)
         if state is None:
@@ -528,7 +525,6 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         # Weights read before the vertex-group input changed are the old group's: solve again
         # after the evaluation that the change brings.
         state.signature, state.result = (None if stale_weights else signature), result
-        state.input = X
         state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
         edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
         state.overlay = (meshio.transform(result.points, M_lat), edges)
@@ -683,7 +679,6 @@ def bind(obj, depsgraph):
     if mesh.library is None:
         for legacy in (PIN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
             _remove_attribute(mesh, legacy)
-    s.bound_topology = meshio.topology_signature(mesh)
     s.is_bound = True
     modifier.ensure(obj)
     # What Bind saves goes on the solver helper, local data even when the mesh is linked.

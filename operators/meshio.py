@@ -2,7 +2,6 @@
 import bpy
 import numpy as np
 
-OFFSET_ATTRIBUTE = "vpffd_offset"
 _WEIGHT_ATTRIBUTE = "vpffd_weight_probe"
 
 
@@ -115,35 +114,6 @@ def float32_or_raise(values, what):
         raise ValueError(f"{what} exceed what Blender can store (float32): the lattice points or "
                          "the object scales are extreme; nothing was written")
     return out
-
-
-def write_offsets(mesh, offsets):
-    """Store (V, 3) offsets in the mesh's float-vector point attribute that the VP-FFD Geometry
-    Nodes modifier adds to the positions. The vertex coordinates themselves are never written."""
-    values = float32_or_raise(offsets, "the offsets")
-    attr = mesh.attributes.get(OFFSET_ATTRIBUTE)
-    if attr is None or attr.data_type != "FLOAT_VECTOR" or attr.domain != "POINT":
-        if attr is not None:
-            mesh.attributes.remove(attr)
-        attr = mesh.attributes.new(OFFSET_ATTRIBUTE, "FLOAT_VECTOR", "POINT")
-    attr.data.foreach_set("vector", values.ravel())
-    mesh.update_tag()
-
-
-def read_offsets(mesh):
-    """(V, 3) float64 offsets currently stored on the mesh (zeros if none)."""
-    attr = mesh.attributes.get(OFFSET_ATTRIBUTE)
-    out = np.zeros(len(mesh.vertices) * 3, np.float32)
-    if attr is not None and attr.data_type == "FLOAT_VECTOR" and len(attr.data) == len(mesh.vertices):
-        attr.data.foreach_get("vector", out)
-    return out.reshape(-1, 3).astype(np.float64)
-
-
-def remove_offsets(mesh):
-    attr = mesh.attributes.get(OFFSET_ATTRIBUTE)
-    if attr is not None:
-        mesh.attributes.remove(attr)
-        mesh.update_tag()
 
 
 def matrix(m):

@@ -1,7 +1,7 @@
 """Per-object settings of VP-FFD (`obj.vpffd`), saved with the .blend file."""
 import bpy
 from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty,
-                       IntProperty, IntVectorProperty, PointerProperty, StringProperty)
+                       IntProperty, PointerProperty, StringProperty)
 
 from . import modifier
 
@@ -147,9 +147,6 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         name="Show Corrected Lattice", default=False, update=_redraw,
         description="Draw the corrected lattice the solver used, and the volume percentage, "
                     "in the 3D viewport")
-    bound_topology: IntVectorProperty(
-        name="Bound Topology", size=4, options={"HIDDEN"},
-        description="Vertex, edge, face and corner counts at bind time")
 
 
 # Every setting can be changed on a library override of a linked character (and is saved with the

@@ -36,6 +36,31 @@ def _socket(ng, name, socket_type, in_out="INPUT", description=""):
     return item
 
 
+def _store(N, link, geometry, data_type, domain, name, value=None):
+    """A Store Named Attribute node writing `value` (an output socket, or a constant) on
+    `geometry`'s `domain`; returns the node."""
+    store = N.new("GeometryNodeStoreNamedAttribute")
+    store.data_type = data_type
+    store.domain = domain
+    store.inputs["Name"].default_value = name
+    link(geometry, store.inputs["Geometry"])
+    if isinstance(value, bpy.types.NodeSocket):
+        link(value, store.inputs["Value"])
+    else:
+        store.inputs["Value"].default_value = value
+    return store
+
+
+def _marked_points(N, link, geometry, mode, marker):
+    """Mesh to Points (radius 0) of `geometry`'s `mode` elements, every point marked with the
+    boolean attribute `marker`; returns (the points node, the marking node)."""
+    points = N.new("GeometryNodeMeshToPoints")
+    points.mode = mode
+    points.inputs["Radius"].default_value = 0.0
+    link(geometry, points.inputs["Mesh"])
+    return points, _store(N, link, points.outputs[0], "BOOLEAN", "POINT", marker, True)
+
+
 def _build(ng):
     """(Re)build the node group's nodes and interface."""
     ng.nodes.clear()
@@ -87,22 +112,9 @@ def _build(ng):
     link(group.outputs["Exists"], pick_exists.inputs["Switch"])
     pick_exists.inputs["False"].default_value = 1.0
     link(pick_invert.outputs[0], pick_exists.inputs["True"])
-    store_weight = N.new("GeometryNodeStoreNamedAttribute")
-    store_weight.data_type = "FLOAT"
-    store_weight.domain = "POINT"
-    store_weight.inputs["Name"].default_value = WEIGHT_ATTRIBUTE
-    link(gin.outputs[0], store_weight.inputs["Geometry"])
-    link(pick_exists.outputs[0], store_weight.inputs["Value"])
-    points = N.new("GeometryNodeMeshToPoints")
-    points.mode = "VERTICES"
-    points.inputs["Radius"].default_value = 0.0
-    link(store_weight.outputs[0], points.inputs["Mesh"])
-    mark = N.new("GeometryNodeStoreNamedAttribute")
-    mark.data_type = "BOOLEAN"
-    mark.domain = "POINT"
-    mark.inputs["Name"].default_value = TAP_ATTRIBUTE
-    mark.inputs["Value"].default_value = True
-    link(points.outputs[0], mark.inputs["Geometry"])
+    store_weight = _store(N, link, gin.outputs[0], "FLOAT", "POINT", WEIGHT_ATTRIBUTE,
+                          pick_exists.outputs[0])
+    points, mark = _marked_points(N, link, store_weight.outputs[0], "VERTICES", TAP_ATTRIBUTE)
 
     # Face tap (only when asked): one point per triangle of the triangulated input, carrying its
     # three vertex indices, in the triangle's own corner order.
@@ -115,24 +127,10 @@ def _build(ng):
         link(N.new("GeometryNodeInputIndex").outputs[0], corner.inputs["Face Index"])
         vertex = N.new("GeometryNodeVertexOfCorner")
         link(corner.outputs["Corner Index"], vertex.inputs["Corner Index"])
-        store = N.new("GeometryNodeStoreNamedAttribute")
-        store.data_type = "INT"
-        store.domain = "FACE"
-        store.inputs["Name"].default_value = name
-        link(geometry, store.inputs["Geometry"])
-        link(vertex.outputs["Vertex Index"], store.inputs["Value"])
+        store = _store(N, link, geometry, "INT", "FACE", name, vertex.outputs["Vertex Index"])
         geometry = store.outputs[0]
         store.location = (-150 + 200 * k, -700)
-    face_points = N.new("GeometryNodeMeshToPoints")
-    face_points.mode = "FACES"
-    face_points.inputs["Radius"].default_value = 0.0
-    link(geometry, face_points.inputs["Mesh"])
-    face_mark = N.new("GeometryNodeStoreNamedAttribute")
-    face_mark.data_type = "BOOLEAN"
-    face_mark.domain = "POINT"
-    face_mark.inputs["Name"].default_value = FACE_ATTRIBUTE
-    face_mark.inputs["Value"].default_value = True
-    link(face_points.outputs[0], face_mark.inputs["Geometry"])
+    face_points, face_mark = _marked_points(N, link, geometry, "FACES", FACE_ATTRIBUTE)
     only_if = N.new("GeometryNodeSwitch")
     only_if.input_type = "GEOMETRY"
     link(gin.outputs[FACES_INPUT], only_if.inputs["Switch"])

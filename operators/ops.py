@@ -1,4 +1,4 @@
-"""Operators: bind, unbind, apply, check folds. Thin wrappers over `engine`."""
+"""Operators: bind, unbind, apply, save as shape key, check folds. Thin wrappers over `engine`."""
 import bpy
 
 from . import engine
@@ -11,6 +11,14 @@ class _ObjectOperator:
     def poll(cls, context):
         ob = context.object
         return ob is not None and ob.type == "MESH"
+
+
+class _BoundOperator(_ObjectOperator):
+    """An operator on a mesh that is bound already."""
+
+    @classmethod
+    def poll(cls, context):
+        return super().poll(context) and context.object.vpffd.is_bound
 
 
 class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
@@ -31,28 +39,20 @@ class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class OBJECT_OT_vpffd_unbind(_ObjectOperator, bpy.types.Operator):
+class OBJECT_OT_vpffd_unbind(_BoundOperator, bpy.types.Operator):
     """Remove VP-FFD from the mesh; its own coordinates were never changed"""
     bl_idname = "object.vpffd_unbind"
     bl_label = "Unbind"
-
-    @classmethod
-    def poll(cls, context):
-        return super().poll(context) and context.object.vpffd.is_bound
 
     def execute(self, context):
         engine.unbind(context.object)
         return {"FINISHED"}
 
 
-class OBJECT_OT_vpffd_apply(_ObjectOperator, bpy.types.Operator):
+class OBJECT_OT_vpffd_apply(_BoundOperator, bpy.types.Operator):
     """Make the current volume-preserved shape the mesh's own, and unbind"""
     bl_idname = "object.vpffd_apply"
     bl_label = "Apply"
-
-    @classmethod
-    def poll(cls, context):
-        return super().poll(context) and context.object.vpffd.is_bound
 
     def execute(self, context):
         try:
@@ -63,15 +63,11 @@ class OBJECT_OT_vpffd_apply(_ObjectOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class OBJECT_OT_vpffd_save_shape_key(_ObjectOperator, bpy.types.Operator):
+class OBJECT_OT_vpffd_save_shape_key(_BoundOperator, bpy.types.Operator):
     """Save what VP-FFD gives on this frame as a new shape key of the mesh, keeping the modifier
     (Blender's own Save as Shape Key does not work on a Geometry Nodes modifier)"""
     bl_idname = "object.vpffd_save_shape_key"
     bl_label = "Save as Shape Key"
-
-    @classmethod
-    def poll(cls, context):
-        return super().poll(context) and context.object.vpffd.is_bound
 
     def execute(self, context):
         ob = context.object
@@ -88,15 +84,11 @@ class OBJECT_OT_vpffd_save_shape_key(_ObjectOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class OBJECT_OT_vpffd_check_folds(_ObjectOperator, bpy.types.Operator):
+class OBJECT_OT_vpffd_check_folds(_BoundOperator, bpy.types.Operator):
     """Count the vertices where the lattice folds space (Jacobian determinant <= 0)"""
     bl_idname = "object.vpffd_check_folds"
     bl_label = "Check Folds"
     bl_options = {"REGISTER"}
-
-    @classmethod
-    def poll(cls, context):
-        return super().poll(context) and context.object.vpffd.is_bound
 
     def execute(self, context):
         ob = context.object

@@ -12,7 +12,7 @@ from . import parallel
 from .bases import axis_taps
 from .lattice import Lattice
 from .mesh import Topology, check_verts
-from .volume import gradient_component
+from .volume import face_volumes, gradient_component
 
 _BLOCK_SIZES = (64, 32, 16, 8)
 _MAX_PADDING = 1.15  # accept a block size when padded slots stay within 15% of the vertex count
@@ -371,10 +371,7 @@ def finish(b, rel, tris, labels, n_slots):
     b.vertex_parts = parallel.split(V, V)
 
     face_island = b.topology.face_island
-    x, y, z = (np.take(coord, tris_t) for coord in np.ascontiguousarray(rel.T))
-    face_vol = (x[0] * (y[1] * z[2] - z[1] * y[2])
-                + y[0] * (z[1] * x[2] - x[1] * z[2])
-                + z[0] * (x[1] * y[2] - y[1] * x[2])) / 6.0
+    face_vol = face_volumes(np.ascontiguousarray(rel.T), tris_t)
     b.rest_island_volumes = np.bincount(face_island, face_vol, b.n_islands)
     b.rest_volume = float(face_vol.sum())
     # The volume's rounding in the binding's precision: a few ulps of every face's term. An open

@@ -175,22 +175,15 @@ class Pipeline:
                            preserve_volume=bool(inp.axes or inp.directions is not None),
                            mobility=inp.mobility, pins=inp.pins, islands=inp.islands)
             try:
-                if self.solver is not None:
-                    sol = self.solver(binding, P_used, options)
-                else:
-                    sol = binding.solve(P_used, **options)
+                solution = (self.solver(binding, P_used, options) if self.solver is not None
+                            else binding.solve(P_used, **options))
             except ValueError as exc:
                 # No correction is possible on this frame: it shows the plain deformation, as the
                 # Lattice modifier would, and says why; the next frame is solved afresh.
-                sol = None
                 warnings.append(f"the volume is not corrected on this frame: {exc}")
-            if sol is not None:
-                solution = sol
-                out, used, volume, plain = sol.verts, sol.points, sol.volume, sol.plain_volume
-                warnings.extend(sol.warnings)
-            else:
-                sol = binding.solve(P_used, axes="", preserve_volume=False)
-                out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
+        if solution is not None:
+            out, used, volume, plain = solution.verts, solution.points, solution.volume, solution.plain_volume
+            warnings.extend(solution.warnings)
         else:
             sol = binding.solve(P_used, axes="", preserve_volume=False)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import tolerances as tol
+from .volume import face_volumes
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
 _JOINT_ITERATIONS = 10   # Gauss-Newton steps for islands and pins (4 sufficed on real meshes)
@@ -282,7 +283,7 @@ class _State:
         e0, axis0, g0, base0 = grads[0]
         self.volumes = self.measure(e0, axis0, g0, base0, blocks[0])
         rows, rhs = [], []
-        k, N, m = len(self.targets), b.lattice.n_points, len(dirs)
+        N, m = b.lattice.n_points, len(dirs)
         if preserve_volume:
             J = np.concatenate(blocks, axis=1)                      # (k, m N)
             r = self.targets - self.volumes
@@ -322,9 +323,7 @@ class _State:
 def _volumes(b, verts, islands):
     """(k,) float64 volumes of `verts` (V, 3), per island or in total, about the binding's origins."""
     rel = verts - b._origins(np.arange(b.n_verts))
-    t = b.topology.tris
-    a, c, d = rel[t[:, 0]], rel[t[:, 1]], rel[t[:, 2]]
-    face = np.einsum("ij,ij->i", a, np.cross(c, d)) / 6.0
+    face = face_volumes(np.ascontiguousarray(rel.T), b.topology.tris_t)
     if islands:
         return np.bincount(b.topology.face_island, face, b.n_islands)
     return np.array([face.sum()])
@@ -364,10 +363,9 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
 
     m = len(dirs)
     if m:
-        plain = None
         for d, e in enumerate(dirs):
-            before = st.step(e, m - d, preserve_volume)
-            plain = before if plain is None else plain
+            st.step(e, m - d, preserve_volume)
+        plain = st.plain            # what the first step measured before moving anything
     else:
         e = np.eye(3)[0]
         plain = st.volumes = st.measure(e, *st.gradient(e), None)

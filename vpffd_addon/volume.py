@@ -19,6 +19,16 @@ def signed_volume(verts, tris, origin=None):
     return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
 
 
+def face_volumes(coords_t, tris_t):
+    """(F,) float64 signed volume terms ``1/6 a . (b x c)`` of the faces `tris_t` (3, F) (row k:
+    corner k of every face) over the coordinates `coords_t` (3, V) (rows x, y, z), taken about
+    their origin. Rows are gathered whole, which is several times faster than (F, 3) gathers."""
+    x, y, z = (np.take(c, tris_t) for c in coords_t)
+    return (x[0] * (y[1] * z[2] - z[1] * y[2])
+            + y[0] * (z[1] * x[2] - x[1] * z[2])
+            + z[0] * (x[1] * y[2] - y[1] * x[2])) / 6.0
+
+
 def gradient_component(P, Q, corners, n_slots):
     """Volume gradient along a direction e, at every vertex slot, from the other two coordinates.
 

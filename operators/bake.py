@@ -370,9 +370,9 @@ class Baker:
         self.scene.frame_set(f)
         depsgraph = self._depsgraph()
         # The frame handler has already solved this frame; a non-forced update re-solves exactly
-        # when the inputs differ from that solve. The first frame is forced, so no stale state
-        # (e.g. an undo) can slip in.
-        engine.update(self.obj, depsgraph, force=self.done == 0)
+        # when the inputs differ from that solve. `start` forced the first frame's solve, so no
+        # stale state (e.g. an undo) can slip in.
+        engine.update(self.obj, depsgraph)
         error = engine.status(self.obj).error
         if error:
             raise BakeError(f"frame {f}: {error}")

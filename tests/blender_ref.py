@@ -24,6 +24,8 @@ import bpy
 import mathutils
 import numpy as np
 
+from demos.render_demos import evaluated_world as _demo_evaluated_world
+
 _PREFIX = "vpffd_ref_"
 
 
@@ -160,18 +162,9 @@ def lattice_modifier_reference(verts, tris, shape, interpolation, deformed_point
 
 
 def evaluated_world(ob):
-    """(world coords (V, 3) float64 of the float32 evaluated mesh of `ob`, tris (F, 3))."""
-    dg = bpy.context.evaluated_depsgraph_get()
-    ev = ob.evaluated_get(dg)
-    me = ev.data
-    co = np.empty(len(me.vertices) * 3, np.float32)
-    me.vertices.foreach_get("co", co)
-    me.calc_loop_triangles()
-    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
-    me.loop_triangles.foreach_get("vertices", tris)
-    M = np.array(ev.matrix_world, dtype=np.float64)
-    co = co.reshape(-1, 3).astype(np.float64)
-    return co @ M[:3, :3].T + M[:3, 3], tris.reshape(-1, 3)
+    """(world coords (V, 3) float64 of the float32 evaluated mesh of `ob`, tris (F, 3)): the demos'
+    own measurement, on the context's depsgraph."""
+    return _demo_evaluated_world(ob, bpy.context.evaluated_depsgraph_get())
 
 
 def evaluated_volume(ob):

@@ -23,6 +23,7 @@ then that one folder is made, inside an existing one, and nothing more). Writing
 (`vpffd_addon.pointcache`): a cancelled or failed bake leaves nothing under the final name.
 """
 import os
+import tempfile
 import time
 from typing import NamedTuple
 
@@ -32,6 +33,7 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..vpffd_addon import pointcache
 from . import engine, modifier
+from .text import report
 
 CACHE_MODIFIER_NAME = "VP-FFD Cache"
 FORMATS = {"PC2": ".pc2", "MDD": ".mdd"}
@@ -43,7 +45,9 @@ FORMAT_ITEMS = [
 _PATH_OPTIONS = ({"SKIP_SAVE", "PATH_SUPPORTS_BLEND_RELATIVE"}
                  if "is_path_supports_blend_relative" in bpy.types.Property.bl_rna.properties
                  else {"SKIP_SAVE"})
-_MODAL_BUDGET_S = 0.1  # frames baked per timer event: as many as fit in this time (at least one)
+# Frames baked per timer event: as many as fit in this time (at least one). The window redraws
+# after each event, so a short budget ties the bake's speed to redrawing the viewport.
+_MODAL_BUDGET_S = 0.5
 
 
 class BakeError(ValueError):
@@ -78,8 +82,19 @@ def _check_format(fmt):
 
 
 def default_filepath(obj, fmt="PC2"):
-    """``//vpffd_<object name><.pc2|.mdd>``: next to the .blend file."""
-    return f"//vpffd_{bpy.path.clean_name(obj.name)}{FORMATS[_check_format(fmt)]}"
+    """``//vpffd_<object name><.pc2|.mdd>`` next to the .blend file; for a file not saved yet, the
+    same name in Blender's temporary folder (Preferences > File Paths), else the system's."""
+    name = f"vpffd_{bpy.path.clean_name(obj.name)}{FORMATS[_check_format(fmt)]}"
+    if bpy.data.filepath:
+        return "//" + name
+    return os.path.join(temporary_folder(), name)
+
+
+def temporary_folder():
+    """Blender's temporary folder (Preferences > File Paths > Temporary Files) when it is set and
+    exists, else the system's."""
+    folder = bpy.path.abspath(bpy.context.preferences.filepaths.temporary_directory or "")
+    return folder if folder and os.path.isdir(folder) else tempfile.gettempdir()
 
 
 def _absolute(filepath):
@@ -474,7 +489,8 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
 
     filepath: StringProperty(
         name="File", subtype="FILE_PATH", default="", options=_PATH_OPTIONS,
-        description="Cache file to write; empty: //vpffd_<object>.pc2 next to the .blend file")
+        description="Cache file to write; empty: vpffd_<object>.pc2 next to the .blend file (in the "
+                    "temporary folder while the file is not saved)")
     format: EnumProperty(
         name="Format", items=FORMAT_ITEMS, default="PC2", update=_format_changed,
         description="Point cache format (both are read by Blender's Mesh Cache modifier)")
@@ -513,6 +529,16 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         layout = self.layout
         layout.use_property_split = True
         layout.prop(self, "filepath")
+        if not bpy.data.filepath:
+            col = layout.column(align=True)
+            if self.filepath.startswith("//"):
+                texts = ("The .blend file is not saved: a path starting with // has no folder.",
+                         "Save the file first, or choose a folder.")
+            else:
+                texts = ("The .blend file is not saved: the cache goes to the temporary folder.",
+                         "Save the file first to keep the cache next to it.")
+            for k, text in enumerate(texts):
+                col.label(text=text, icon="INFO" if k == 0 else "BLANK1")
         layout.prop(self, "make_folder")
         layout.prop(self, "format")
         col = layout.column(align=True)
@@ -527,7 +553,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
                           self.frame_end, self.format, self.make_folder)
             baker.start()
         except BakeError as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         self._baker = baker
         if bpy.app.background or context.window is None:
@@ -548,7 +574,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
                     print(f"VP-FFD: baked {baker.done}/{baker.total} frames")
         except BakeError as exc:
             baker.abort()
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         except BaseException:
             baker.abort()
@@ -562,9 +588,9 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
                 switch_to_cache(self._baker.obj, self.filepath, result.format, result.frame_start,
                                 self._baker.scene)
         except BakeError as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"VP-FFD: baked frames {result.frame_start}-{result.frame_end} "
+        report(self, "INFO", f"baked frames {result.frame_start}-{result.frame_end} "
                               f"({result.n_verts:,} vertices) to {result.filepath} "
                               f"in {result.seconds:.1f} s")
         return {"FINISHED"}
@@ -595,7 +621,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         except BaseException as exc:  # never leave a running bake (or its temporary file) behind
             self._stop(context)
             self._baker.abort()
-            self.report({"ERROR"}, f"VP-FFD: bake failed: {type(exc).__name__}: {exc}")
+            report(self, "ERROR", f"bake failed: {type(exc).__name__}: {exc}")
             return {"CANCELLED"}
 
     def _modal(self, context, event):
@@ -603,7 +629,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         if event.type == "ESC" and event.value == "PRESS":
             self._stop(context)
             baker.abort()
-            self.report({"WARNING"}, f"VP-FFD: bake cancelled after {baker.done} of {baker.total} "
+            report(self, "WARNING", f"bake cancelled after {baker.done} of {baker.total} "
                                      f"frames; nothing was written to {baker.path}")
             return {"CANCELLED"}
         if event.type != "TIMER":
@@ -616,7 +642,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         except BakeError as exc:
             self._stop(context)
             baker.abort()
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         context.window_manager.progress_update(baker.done)
         if not finished:
@@ -671,7 +697,7 @@ class OBJECT_OT_vpffd_use_cache(bpy.types.Operator):
                 switch_to_cache(ob, cache.filepath, cache.cache_format, cache.frame_start,
                                 context.scene)
         except BakeError as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         return {"FINISHED"}
 
@@ -691,7 +717,7 @@ class OBJECT_OT_vpffd_use_live(bpy.types.Operator):
         try:
             switch_to_live(context.object)
         except BakeError as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         return {"FINISHED"}
 
@@ -700,14 +726,13 @@ classes = (OBJECT_OT_vpffd_bake, OBJECT_OT_vpffd_use_cache, OBJECT_OT_vpffd_use_
 
 
 def draw_bake(layout, obj):
-    """The Bake box of the VP-FFD panel for `obj`."""
-    box = layout.box()
-    col = box.column()
+    """The Bake sub-panel of the VP-FFD panel for `obj`."""
+    col = layout.column()
     cache = find_cache(obj)
     if cache is not None and using_cache(obj):
-        col.label(text=f"Playing {cache.cache_format} cache: {cache.filepath}", icon="FILE_CACHE")
+        col.label(text=f"Playing the {cache.cache_format} cache {cache.filepath}.", icon="FILE_CACHE")
         if modifier.find(obj) is not None and modifier.find(obj).show_viewport:
-            col.label(text="The VP-FFD modifier is on too: the offsets add to the cache",
+            col.label(text="The VP-FFD modifier is on too: its offsets add to the cache.",
                       icon="ERROR")
     row = col.row(align=True)
     row.operator("object.vpffd_bake", icon="EXPORT")

@@ -9,6 +9,7 @@ from bpy.props import EnumProperty, FloatProperty, IntProperty, IntVectorPropert
 
 from .. import vpffd_addon as vp
 from .meshio import matrix, mesh_coords, transform
+from .text import report
 
 CELLS_PROPERTY = "vpffd_cells"
 
@@ -153,9 +154,9 @@ class OBJECT_OT_vpffd_cage_add_box(bpy.types.Operator):
             ob = new_cage_object(context, "Cage", cage.rest_points, cage.cells)
             ob.location = centre
         except ValueError as exc:
-            self.report({"ERROR"}, str(exc))
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"VP-FFD cage: {cage.n_cells} cells, {cage.n_points} points")
+        report(self, "INFO", f"cage of {cage.n_cells:,} cells, {cage.n_points:,} points")
         return {"FINISHED"}
 
 
@@ -191,7 +192,7 @@ class OBJECT_OT_vpffd_cage_from_polygons(bpy.types.Operator):
         ob = context.active_object
         me = ob.data
         if not len(me.polygons):
-            self.report({"ERROR"}, f"'{ob.name}' has no polygons to extrude")
+            report(self, "ERROR", f"'{ob.name}' has no polygons to extrude")
             return {"CANCELLED"}
         points = mesh_coords(me)
         starts = np.empty(len(me.polygons), np.int32)
@@ -209,7 +210,7 @@ class OBJECT_OT_vpffd_cage_from_polygons(bpy.types.Operator):
             me.polygons.foreach_get("area", areas)
             axis = (normals.reshape(-1, 3) * areas[:, None]).sum(0)
             if not np.linalg.norm(axis) > 0:
-                self.report({"ERROR"}, "the polygons' normals cancel out: pick X, Y or Z as the direction")
+                report(self, "ERROR", "the polygons' normals cancel out: pick X, Y or Z as the direction")
                 return {"CANCELLED"}
         else:
             axis = np.eye(3)["XYZ".index(self.direction)]
@@ -222,9 +223,9 @@ class OBJECT_OT_vpffd_cage_from_polygons(bpy.types.Operator):
             P, cells = vp.extrude(base, [remap[p].tolist() for p in polys], offset, self.layers)
             cage = new_cage_object(context, ob.name + " Cage", P, cells, ob.matrix_world.copy())
         except ValueError as exc:
-            self.report({"ERROR"}, str(exc))
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"VP-FFD cage '{cage.name}': {len(cells)} cells, {len(P)} points")
+        report(self, "INFO", f"cage '{cage.name}': {len(cells):,} cells, {len(P):,} points")
         return {"FINISHED"}
 
 
@@ -250,7 +251,7 @@ class OBJECT_OT_vpffd_cage_fit(bpy.types.Operator):
         cage_ob = context.active_object
         targets = _selected_meshes(context, exclude=cage_ob)
         if not targets:
-            self.report({"ERROR"}, "select the meshes to enclose, then the cage last (active)")
+            report(self, "ERROR", "select the meshes to enclose, then the cage last (active)")
             return {"CANCELLED"}
         to_local = np.linalg.inv(matrix(cage_ob.matrix_world))
         lo, hi = _padded_bounds(targets, context.evaluated_depsgraph_get(), self.margin, to_local)
@@ -266,7 +267,7 @@ class OBJECT_OT_vpffd_cage_fit(bpy.types.Operator):
         try:
             vp.Cage(new, cage_cells(cage_ob))
         except ValueError as exc:
-            self.report({"ERROR"}, str(exc))
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         me.vertices.foreach_set("co", new.astype(np.float32).ravel())
         me.update()

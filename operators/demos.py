@@ -8,6 +8,7 @@ import numpy as np
 
 from .. import vpffd_addon as vp
 from . import cage, engine
+from .text import report
 
 BALL_FRAMES = (1, 60)
 CUBE_FRAMES = (1, 60)
@@ -65,6 +66,8 @@ def _lattice_object(scene, name, shape, half_extent, location):
 
 
 def _label(scene, text, location, size=0.3):
+    """Dark text on a light plate just behind it: readable on the dark background of the Solid
+    viewport and on the light world of the renders alike."""
     curve = bpy.data.curves.new(f"Label {text}", "FONT")
     curve.body = text
     curve.align_x = "CENTER"
@@ -72,8 +75,16 @@ def _label(scene, text, location, size=0.3):
     ob = bpy.data.objects.new(f"Label {text}", curve)
     ob.location = location
     ob.rotation_euler = (math.radians(90), 0, 0)
-    ob.data.materials.append(_material("VP-FFD Demo Label", (0.08, 0.08, 0.08, 1.0)))
+    ob.data.materials.append(_material("VP-FFD Demo Label", (0.04, 0.04, 0.04, 1.0)))
     scene.collection.objects.link(ob)
+    # The plate, in the text's own plane (text from about -0.25 to 0.8 of its size about the
+    # baseline; a character about 0.55 of its size wide), a little behind it.
+    half_w = 0.27 * size * len(text) + 0.1 * size
+    lo, hi = -0.45 * size, 1.0 * size
+    plate_v = np.array([[-half_w, lo, -0.01], [half_w, lo, -0.01], [half_w, hi, -0.01], [-half_w, hi, -0.01]])
+    plate = _mesh_object(scene, f"Label Plate {text}", plate_v, np.array([[0, 1, 2], [0, 2, 3]]),
+                         _material("VP-FFD Demo Label Plate", (0.95, 0.95, 0.93, 1.0)))
+    plate.parent = ob
     return ob
 
 
@@ -141,10 +152,14 @@ def _fcurves(anim):
     return curves
 
 
-def _bind(ob, depsgraph, **settings):
+def _bind(ob, depsgraph, progress=None, **settings):
+    """Bind `ob` with `settings`; `progress()` is called once it is bound (the window's progress
+    indicator: binding is most of a demo's build time)."""
     for k, v in settings.items():
         setattr(ob.vpffd, k, v)
     engine.bind(ob, depsgraph)
+    if progress is not None:
+        progress()
 
 
 def _plain(ob, lattice):
@@ -189,20 +204,20 @@ def _ball_rig(scene, name, x, colour):
     return ball, lat
 
 
-def build_bouncing_ball(scene, depsgraph=None):
+def build_bouncing_ball(scene, depsgraph=None, progress=None):
     """Two balls falling side by side: a plain Lattice modifier (left) and VP-FFD correcting in
     the horizontal directions (right), so the squash spreads sideways (paper section 5.1).
     Returns {'plain': ball, 'vpffd': ball, 'lattices': [...]}."""
     plain, plain_lat = _ball_rig(scene, "Ball Lattice Modifier", -1.2, PLAIN_COLOUR)
     ours, our_lat = _ball_rig(scene, "Ball VP-FFD XY", 1.2, VPFFD_COLOUR)
-    _label(scene, "Lattice modifier", (-1.2, 0.0, 3.4))
-    _label(scene, "VP-FFD (XY)", (1.2, 0.0, 3.4))
+    _label(scene, "Lattice modifier", (-1.2, 0.0, 3.4), size=0.26)
+    _label(scene, "VP-FFD (XY)", (1.2, 0.0, 3.4), size=0.26)
     _stage(scene, camera_location=(0.0, -8.5, 2.2), camera_target=(0.0, 0.0, 1.5), frames=BALL_FRAMES,
            ground_size=5.0)
     _plain(plain, plain_lat)
     scene.frame_set(scene.frame_start)
     dg = depsgraph or scene.view_layers[0].depsgraph
-    _bind(ours, dg, lattice=our_lat, axes="XY", space="LATTICE")
+    _bind(ours, dg, progress=progress, lattice=our_lat, axes="XY", space="LATTICE")
     return {"plain": plain, "vpffd": ours, "lattices": [plain_lat, our_lat]}
 
 
@@ -225,7 +240,7 @@ def _cube_rig(scene, name, x, colour):
     return cube, lat
 
 
-def build_twisting_cube(scene, depsgraph=None):
+def build_twisting_cube(scene, depsgraph=None, progress=None):
     """Three cubes twisted by their lattices (paper Figure 6): a plain Lattice modifier, VP-FFD
     correcting in XY (top and bottom stay flat) and VP-FFD correcting in Z.
     Returns {'plain': cube, 'vpffd_xy': cube, 'vpffd_z': cube, 'lattices': [...]}."""
@@ -233,14 +248,14 @@ def build_twisting_cube(scene, depsgraph=None):
     xy, xy_lat = _cube_rig(scene, "Cube VP-FFD XY", 0.0, VPFFD_COLOUR)
     z, z_lat = _cube_rig(scene, "Cube VP-FFD Z", 2.0, VPFFD_COLOUR_2)
     for text, x in (("Lattice modifier", -2.0), ("VP-FFD (XY)", 0.0), ("VP-FFD (Z)", 2.0)):
-        _label(scene, text, (x, 0.0, 1.85))
+        _label(scene, text, (x, 0.0, 1.85), size=0.22)
     _stage(scene, camera_location=(0.0, -7.5, 3.3), camera_target=(0.0, 0.0, 0.85), frames=CUBE_FRAMES,
            ground_size=6.0)
     _plain(plain, plain_lat)
     scene.frame_set(scene.frame_start)
     dg = depsgraph or scene.view_layers[0].depsgraph
-    _bind(xy, dg, lattice=xy_lat, axes="XY", space="LATTICE")
-    _bind(z, dg, lattice=z_lat, axes="Z", space="LATTICE")
+    _bind(xy, dg, progress=progress, lattice=xy_lat, axes="XY", space="LATTICE")
+    _bind(z, dg, progress=progress, lattice=z_lat, axes="Z", space="LATTICE")
     return {"plain": plain, "vpffd_xy": xy, "vpffd_z": z, "lattices": [plain_lat, xy_lat, z_lat]}
 
 
@@ -292,7 +307,7 @@ def _tube_rig(scene, name, x, colour):
     return tube, cage_ob
 
 
-def build_squeezed_tube(scene, depsgraph=None):
+def build_squeezed_tube(scene, depsgraph=None, progress=None):
     """Three capsules squeezed in the middle by cylindrical cages: the cage's plain deformation
     (Correction None), VP-FFD along X, Y and Z, and VP-FFD along Z only (the squeezed volume goes
     into the capsule's length). Returns {'plain': tube, 'vpffd_xyz': tube, 'vpffd_z': tube,
@@ -301,14 +316,14 @@ def build_squeezed_tube(scene, depsgraph=None):
     xyz, xyz_cage = _tube_rig(scene, "Tube VP-FFD XYZ", 0.0, VPFFD_COLOUR)
     z, z_cage = _tube_rig(scene, "Tube VP-FFD Z", 1.6, VPFFD_COLOUR_2)
     for text, x in (("No correction", -1.6), ("VP-FFD (XYZ)", 0.0), ("VP-FFD (Z)", 1.6)):
-        _label(scene, text, (x, 0.0, 3.05), size=0.24)
+        _label(scene, text, (x, 0.0, 3.05), size=0.22)
     _stage(scene, camera_location=(0.0, -8.0, 1.9), camera_target=(0.0, 0.0, 1.6), frames=TUBE_FRAMES,
            ground_size=6.0)
     scene.frame_set(scene.frame_start)
     dg = depsgraph or scene.view_layers[0].depsgraph
-    _bind(plain, dg, lattice=plain_cage, axes="NONE", cage_depth=3)
-    _bind(xyz, dg, lattice=xyz_cage, axes="XYZ", space="LATTICE", cage_depth=3)
-    _bind(z, dg, lattice=z_cage, axes="Z", space="LATTICE", cage_depth=3)
+    _bind(plain, dg, progress=progress, lattice=plain_cage, axes="NONE", cage_depth=3)
+    _bind(xyz, dg, progress=progress, lattice=xyz_cage, axes="XYZ", space="LATTICE", cage_depth=3)
+    _bind(z, dg, progress=progress, lattice=z_cage, axes="Z", space="LATTICE", cage_depth=3)
     return {"plain": plain, "vpffd_xyz": xyz, "vpffd_z": z, "cages": [plain_cage, xyz_cage, z_cage]}
 
 
@@ -339,11 +354,27 @@ class _DemoOperator:
             scene = bpy.data.scenes.new(self.scene_name)
             if context.window is not None:
                 context.window.scene = scene
+        # Binding is most of the build (seconds for the cage demo): the mouse cursor counts the
+        # bound objects, and the status bar says what is going on.
+        wm = context.window_manager
+        done = [0]
+
+        def progress():
+            done[0] += 1
+            wm.progress_update(done[0])
+        workspace = getattr(context, "workspace", None)
+        if workspace is not None:
+            workspace.status_text_set(f"VP-FFD: building the {self.scene_name[7:].lower()} demo ...")
+        wm.progress_begin(0, self.binds)
         try:
-            self.build(scene, scene.view_layers[0].depsgraph)
+            self.build(scene, scene.view_layers[0].depsgraph, progress=progress)
         except (engine.BindError, ValueError) as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
+        finally:
+            wm.progress_end()
+            if workspace is not None:
+                workspace.status_text_set(None)
         _select_first_corrected(scene)
         return {"FINISHED"}
 
@@ -353,6 +384,7 @@ class OBJECT_OT_vpffd_demo_bouncing_ball(_DemoOperator, bpy.types.Operator):
     bl_idname = "object.vpffd_demo_bouncing_ball"
     bl_label = "Bouncing Ball (VP-FFD Demo)"
     scene_name = "VP-FFD Bouncing Ball"
+    binds = 1
     build = staticmethod(build_bouncing_ball)
 
 
@@ -361,6 +393,7 @@ class OBJECT_OT_vpffd_demo_twisting_cube(_DemoOperator, bpy.types.Operator):
     bl_idname = "object.vpffd_demo_twisting_cube"
     bl_label = "Twisting Cube (VP-FFD Demo)"
     scene_name = "VP-FFD Twisting Cube"
+    binds = 2
     build = staticmethod(build_twisting_cube)
 
 
@@ -369,6 +402,7 @@ class OBJECT_OT_vpffd_demo_squeezed_tube(_DemoOperator, bpy.types.Operator):
     bl_idname = "object.vpffd_demo_squeezed_tube"
     bl_label = "Squeezed Tube (VP-FFD Cage Demo)"
     scene_name = "VP-FFD Squeezed Tube"
+    binds = 3
     build = staticmethod(build_squeezed_tube)
 
 

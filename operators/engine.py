@@ -14,6 +14,7 @@ from typing import Optional
 import numpy as np
 
 from .. import vpffd_addon as vp
+from ..vpffd_addon import linalg3
 from . import cage, gpu_backend, meshio, modifier
 
 LEGACY_ATTRIBUTES = ("vpffd_offset", "vpffd_weight")  # written by earlier versions
@@ -37,6 +38,7 @@ class Status:
     percentages of the volume that reached the VP-FFD slot; None where not known."""
     error: Optional[str] = None            #: why nothing (or only the input) is shown, in words
     switched_off: bool = False             #: the modifier is off in the viewport
+    paused: Optional[str] = None           #: why VP-FFD is not solving now (no figures then)
     warnings: tuple = ()                   #: what the solve could not do, in words
     volume_percent: Optional[float] = None
     plain_percent: Optional[float] = None  #: what the plain Lattice modifier would give
@@ -49,6 +51,8 @@ class Status:
     closed: Optional[bool] = None          #: whether their faces close a volume
     folds: Optional[int] = None            #: vertices where the lattice folds space
     rebound: bool = False                  #: whether this update embedded the input anew
+    outside: Optional[int] = None          #: points outside the lattice's box or cage's region
+    outside_follow: bool = True            #: whether those follow the boundary (else they stay)
 
 
 def status(obj):
@@ -224,7 +228,7 @@ def _directions(s, lat_matrix):
         return s.axes, None
     # A world displacement e is inv(M3) e in lattice space (not unit length under scale: the
     # solver normalises; the volume is exact along any direction).
-    inv3 = np.linalg.inv(lat_matrix[:3, :3])
+    inv3 = linalg3.inv3(lat_matrix[:3, :3])
     world = np.eye(3)[["XYZ".index(c) for c in s.axes]]
     return "", world @ inv3.T
 
@@ -250,7 +254,7 @@ def _pin_targets(s, pins, X, lat_matrix, ob_matrix):
     M_t = meshio.matrix(s.pin_target.matrix_world)
     M_t0 = np.array(s.pin_target_rest).reshape(4, 4)
     M_mesh0 = np.array(s.pin_mesh_rest).reshape(4, 4)
-    carry = np.linalg.inv(lat_matrix) @ M_t @ np.linalg.inv(M_t0) @ M_mesh0
+    carry = linalg3.matmul4(linalg3.affine_inverse(lat_matrix), M_t, linalg3.affine_inverse(M_t0), M_mesh0)
     targets = meshio.transform(X[pins].astype(np.float64), carry)
     return list(zip(pins.tolist(), targets))
 
@@ -366,9 +370,10 @@ def _write(state, helper, offsets):
     return values
 
 
-def _pause(obj, **changes):
-    """Keep the last figures with `changes` made to them, and have the next update solve again."""
-    _set_stats(obj, **{**dataclasses.asdict(status(obj)), **changes})
+def _pause(obj, **why):
+    """Nothing is solved now (`why`: paused=text or switched_off=True): the panel shows no
+    figures, since they would be those of another state; the next update solves again."""
+    _set_stats(obj, **why)
     state = _cache.get(obj.session_uid)
     if state is not None:
         state.signature = None
@@ -401,12 +406,12 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             return False
         if not force and not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
             if depsgraph.mode != "RENDER":
-                # Switched off in the viewport: the panel says so instead of an error of an earlier
-                # solve (the last figures stay, e.g. from Check Folds); switching it on solves again.
-                _pause(obj, error=None, switched_off=True)
+                # Switched off in the viewport: the panel says so instead of an error or figures of
+                # an earlier solve; switching it on solves again.
+                _pause(obj, switched_off=True)
             return False  # switched off for this evaluation, like any modifier
         if obj.mode == "EDIT":
-            _pause(obj, error="paused while the mesh is in Edit Mode")   # leaving it solves again
+            _pause(obj, paused="the mesh is in Edit Mode: VP-FFD solves again when you leave it")
             return False
         state = _cache.get(uid)
         if state is None:
@@ -474,12 +479,12 @@ def _update(obj, depsgraph, force, helpers_taken=None):
         M_lat = meshio.matrix(lat_eval.matrix_world)
         M_ob = meshio.matrix(ob_eval.matrix_world)
         for what, M in (("lattice", M_lat), ("mesh", M_ob)):
-            if not abs(np.linalg.det(M[:3, :3])) > 1e-30:
+            if not abs(linalg3.det3(M[:3, :3])) > 1e-30:
                 name = lat_ob.name if what == "lattice" else obj.name
                 raise ValueError(f"the {what} object '{name}' is scaled to zero along an axis on this "
                                  "frame: there is no lattice space to deform in (the mesh shows "
                                  "undeformed)")
-        L = np.linalg.inv(M_lat) @ M_ob
+        L = linalg3.matmul4(linalg3.affine_inverse(M_lat), M_ob)
         axes, directions = _directions(s, M_lat)
         tris, faces_from = _faces(state, obj, ob_eval, len(X), tapped_tris, mod,
                                   may_write=depsgraph.mode != "RENDER")
@@ -535,7 +540,9 @@ def _update(obj, depsgraph, force, helpers_taken=None):
                     warnings=tuple(warnings) + tuple(result.warnings), backend=backend,
                     backend_reason=backend_reason, n_verts=len(X), folds=None,
                     closed=None if binding is None else binding.is_closed,
-                    input_volume=result.input_volume, rebound=result.rebound)
+                    input_volume=result.input_volume, rebound=result.rebound,
+                    outside=result.outside, outside_follow=s.cage_outside == "FOLLOW" or
+                    isinstance(lattice, vp.Lattice))
         if result.input_volume:
             # Sizes: a lattice that mirrors space turns the volume's sign with the shape.
             info["volume_percent"] = 100.0 * abs(result.volume / result.input_volume)
@@ -580,8 +587,9 @@ def overlay_geometry(obj):
     if state is None or getattr(state, "overlay", None) is None:
         return None
     info = status(obj)
-    label = (f"{info.volume_percent:.3f}% volume" if info.volume_percent is not None else "") \
-        if not info.error else "VP-FFD: error"
+    if info.error or info.paused or info.switched_off:
+        return None     # the mesh shows no correction now: drawing the last one would be false
+    label = f"{info.volume_percent:.3f}% volume" if info.volume_percent is not None else ""
     return state.overlay + (label,)
 
 
@@ -706,15 +714,9 @@ def bind(obj, depsgraph):
     if b is not None and not b.is_closed:
         warnings.append("the mesh is not closed: the volume of an open surface is measured about "
                         "the lattice centre")
-    if b is not None and isinstance(b.lattice, vp.Cage):
-        if b.n_outside:
-            what = "they follow its boundary" if b.outside == "FOLLOW" else "they stay where they are"
-            warnings.append(f"{b.n_outside} of {b.n_verts} vertices lie outside the cage's region ({what})")
-    elif b is not None:
-        inside = _inside_count(state, b.lattice)
-        if inside < b.n_verts:
-            warnings.append(f"{b.n_verts - inside} of {b.n_verts} vertices lie outside the lattice "
-                            "(they follow its boundary, as with the Lattice modifier)")
+    if info.outside:
+        warnings.append(outside_message(info, b is not None and isinstance(b.lattice, vp.Cage)))
+    if b is not None and isinstance(b.lattice, vp.Lattice):
         if 1 in b.lattice.shape:
             warnings.append("the lattice has a single point on an axis: it only moves along that axis")
     if info.folds:
@@ -723,12 +725,13 @@ def bind(obj, depsgraph):
     return warnings
 
 
-def _inside_count(state, lattice):
-    v = state.result.binding._to_verts(state.result.binding.x0)
-    eps = 1e-6 * lattice.size
-    spans = np.array(lattice.shape) > 1  # a one-point axis has no extent to be outside of
-    inside = (v >= lattice.lo - eps) & (v <= lattice.hi + eps)
-    return int(inside[:, spans].all(1).sum())
+def outside_message(info, is_cage):
+    """Words for `info.outside` points of `info.n_verts` outside the lattice or cage."""
+    where = "the cage's region" if is_cage else "the lattice"
+    what = ("they follow its boundary" if info.outside_follow else "they stay where they are")
+    if not is_cage:
+        what += ", as with the Lattice modifier"
+    return f"{info.outside:,} of {info.n_verts:,} vertices lie outside {where} ({what})"
 
 
 def _remove_attribute(mesh, name):

@@ -2,6 +2,8 @@
 import bpy
 import numpy as np
 
+from ..vpffd_addon.linalg3 import affine
+
 _WEIGHT_ATTRIBUTE = "vpffd_weight_probe"
 
 
@@ -122,5 +124,5 @@ def matrix(m):
 
 
 def transform(points, mat):
-    """Apply a (4, 4) affine matrix to (V, 3) points."""
-    return points @ mat[:3, :3].T + mat[:3, 3]
+    """Apply a (4, 4) affine matrix to (V, 3) points (without BLAS: see `mesh.affine`)."""
+    return affine(points, mat)

@@ -2,6 +2,7 @@
 import bpy
 
 from . import engine
+from .text import report
 
 
 class _ObjectOperator:
@@ -22,19 +23,27 @@ class _BoundOperator(_ObjectOperator):
 
 
 class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
-    """Bind the mesh to its lattice with exact volume preservation (adds the VP-FFD modifier)"""
+    """Bind the mesh to its lattice with exact volume preservation (adds the VP-FFD modifier at the end of the stack)"""
     bl_idname = "object.vpffd_bind"
     bl_label = "Bind"
+
+    @classmethod
+    def description(cls, context, properties):
+        ob = context.object
+        if ob is not None and ob.type == "MESH" and ob.vpffd.is_bound:
+            return ("Bind the mesh again with the current settings (pins, a cage's rest shape); "
+                    "the VP-FFD modifier stays where it is in the stack")
+        return cls.__doc__
 
     def execute(self, context):
         ob = context.object
         try:
             warnings = engine.bind(ob, context.evaluated_depsgraph_get())
         except (engine.BindError, ValueError) as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         for text in warnings:
-            self.report({"WARNING"}, f"VP-FFD: {text}")
+            report(self, "WARNING", text)
         context.scene.render.use_lock_interface = True  # handlers write data during renders
         return {"FINISHED"}
 
@@ -58,7 +67,7 @@ class OBJECT_OT_vpffd_apply(_BoundOperator, bpy.types.Operator):
         try:
             engine.apply(context.object, context.evaluated_depsgraph_get())
         except (engine.BindError, ValueError) as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         return {"FINISHED"}
 
@@ -74,13 +83,13 @@ class OBJECT_OT_vpffd_save_shape_key(_BoundOperator, bpy.types.Operator):
         try:
             name, before = engine.save_shape_key(ob, context.evaluated_depsgraph_get())
         except (engine.BindError, ValueError) as exc:
-            self.report({"ERROR"}, f"VP-FFD: {exc}")
+            report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         if before:
-            self.report({"WARNING"}, f"VP-FFD: shape key '{name}' includes the modifiers before "
+            report(self, "WARNING", f"shape key '{name}' includes the modifiers before "
                                      f"VP-FFD ({', '.join(before)})")
         else:
-            self.report({"INFO"}, f"VP-FFD: saved shape key '{name}'")
+            report(self, "INFO", f"saved shape key '{name}'")
         return {"FINISHED"}
 
 
@@ -94,9 +103,9 @@ class OBJECT_OT_vpffd_check_folds(_BoundOperator, bpy.types.Operator):
         ob = context.object
         n = engine.check_folds(ob, context.evaluated_depsgraph_get())
         if n is None:
-            self.report({"ERROR"}, f"VP-FFD: {engine.status(ob).error}")
+            report(self, "ERROR", f"{engine.status(ob).error}")
             return {"CANCELLED"}
-        self.report({"WARNING"} if n else {"INFO"}, f"VP-FFD: {n} inverted vertices")
+        report(self, "WARNING" if n else "INFO", f"{n:,} inverted vertices")
         return {"FINISHED"}
 
 

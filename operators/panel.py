@@ -1,51 +1,137 @@
-"""The VP-FFD panel, in the Modifier properties next to the modifier stack."""
+"""The VP-FFD panel in the Modifier properties, built as Blender's own panels are: a main panel
+(lattice, weights, bind) and sub-panels for Cage, Correction, Pins, Folds, Corrected Lattice,
+Bake and Status, with split properties and no animation decorators."""
 import bpy
 
 from . import bake, cage, engine, modifier
+from .text import count, lines, sentence
+
+def _settings(context):
+    ob = context.object
+    return None if ob is None or ob.type != "MESH" or cage.is_cage(ob) else ob.vpffd
 
 
-class OBJECT_PT_vpffd(bpy.types.Panel):
-    bl_label = "Volume-Preserving Lattice (VP-FFD)"
+def message(layout, context, text, icon="NONE"):
+    """`text` as a sentence, wrapped to the panel's width (labels never wrap on their own)."""
+    width = (context.region.width if context.region else 300) / (7.0 * context.preferences.view.ui_scale)
+    col = layout.column(align=True)
+    for k, line in enumerate(lines(sentence(text), width - 4)):
+        col.label(text=line, icon=icon if k == 0 else "BLANK1")
+
+
+class _Panel:
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
     bl_context = "modifier"
+
+    def draw_split(self):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.use_property_decorate = False
+        return layout
+
+
+class _SubPanel(_Panel):
+    bl_parent_id = "OBJECT_PT_vpffd"
+
+    @classmethod
+    def poll(cls, context):
+        return _settings(context) is not None
+
+
+class _BoundSubPanel(_SubPanel):
+    @classmethod
+    def poll(cls, context):
+        s = _settings(context)
+        return s is not None and s.is_bound
+
+
+class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
+    bl_label = "Volume-Preserving Lattice (VP-FFD)"
 
     @classmethod
     def poll(cls, context):
         return context.object is not None and context.object.type == "MESH"
 
     def draw(self, context):
-        layout = self.layout
-        layout.use_property_split = True
+        layout = self.draw_split()
         ob = context.object
         if cage.is_cage(ob):
-            self.draw_cage(layout, ob)
+            self.draw_cage(layout, context, ob)
             return
         s = ob.vpffd
-        bound = s.is_bound
-
         col = layout.column()
         col.prop(s, "lattice")
-        if cage.is_cage(s.lattice):
-            col.prop(s, "cage_depth")
-            col.prop(s, "cage_outside")
         row = col.row(align=True)
         row.prop_search(s, "vertex_group", ob, "vertex_groups", text="Vertex Group")
         row.prop(s, "invert_vertex_group", text="", icon="ARROW_LEFTRIGHT")
         col.prop(s, "strength", slider=True)
+        if s.is_bound and modifier.find(ob) is not None and not bake.using_cache(ob):
+            col.prop(s, "enabled")     # on the cache, "Use Live" switches back instead
 
-        col = layout.column()
-        col.prop(s, "axes")
-        col.prop(s, "space")
-        col.prop(s, "volume_scale")
-        if s.lattice is not None:
-            col.prop_search(s, "mobility_group", s.lattice, "vertex_groups", text="Mobility Group")
+        row = layout.row(align=True)
+        if s.is_bound:
+            row.operator("object.vpffd_bind", text="Re-bind", icon="FILE_REFRESH")
+            row.operator("object.vpffd_apply", icon="CHECKMARK")
+            row.operator("object.vpffd_unbind", icon="X")
+            layout.operator("object.vpffd_save_shape_key", icon="SHAPEKEY_DATA")
         else:
-            col.prop(s, "mobility_group")
-        col.prop(s, "use_islands")
+            row.operator("object.vpffd_bind", icon="MOD_LATTICE")
+
+    @staticmethod
+    def draw_cage(layout, context, ob):
+        try:
+            cells = cage.cage_cells(ob)
+            message(layout, context, f"VP-FFD cage: {count(len(cells))} cells, "
+                                     f"{count(len(ob.data.vertices))} points", icon="MESH_ICOSPHERE")
+        except ValueError as exc:
+            message(layout, context, str(exc), icon="ERROR")
+        message(layout, context, "bind meshes to it from their own VP-FFD panel")
+        layout.operator("object.vpffd_cage_fit", icon="FULLSCREEN_ENTER")
+
+
+class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
+    bl_label = "Cage"
+
+    @classmethod
+    def poll(cls, context):
+        s = _settings(context)
+        return s is not None and cage.is_cage(s.lattice)
+
+    def draw(self, context):
+        s = context.object.vpffd
+        col = self.draw_split().column()
+        col.prop(s, "cage_depth")
+        col.prop(s, "cage_outside")
+
+
+class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
+    bl_label = "Correction"
+
+    def draw(self, context):
+        s = context.object.vpffd
+        col = self.draw_split().column()
+        col.prop(s, "axes")
+        sub = col.column()
+        sub.active = s.axes != "NONE"
+        sub.prop(s, "space")
+        sub.prop(s, "volume_scale")
+        if s.lattice is not None:
+            sub.prop_search(s, "mobility_group", s.lattice, "vertex_groups", text="Mobility Group")
+        else:
+            sub.prop(s, "mobility_group")
+        sub.prop(s, "use_islands")
         col.prop(s, "backend")
 
-        col = layout.column()
+
+class OBJECT_PT_vpffd_pins(_SubPanel, bpy.types.Panel):
+    bl_label = "Pins"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        ob = context.object
+        s = ob.vpffd
+        col = self.draw_split().column()
         col.prop(s, "pin_mode")
         if s.pin_mode == "VERTEX":
             col.prop(s, "pin_vertex")
@@ -53,57 +139,91 @@ class OBJECT_PT_vpffd(bpy.types.Panel):
             col.prop_search(s, "pin_vertex_group", ob, "vertex_groups", text="Pin Group")
         if s.pin_mode != "NONE":
             col.prop(s, "pin_target")
+            if s.is_bound:
+                message(col, context, "pins are saved at Bind: Re-bind after changing them", icon="INFO")
 
-        row = layout.row(align=True)
-        if bound:
-            row.operator("object.vpffd_bind", text="Re-bind", icon="FILE_REFRESH")
-            row.operator("object.vpffd_apply", icon="CHECKMARK")
-            row.operator("object.vpffd_unbind", icon="X")
-            layout.operator("object.vpffd_save_shape_key", icon="SHAPEKEY_DATA")
-            if modifier.find(ob) is not None and not bake.using_cache(ob):
-                layout.prop(s, "enabled")     # on the cache, "Use Live" switches back instead
-            layout.prop(s, "show_overlay")
-            layout.prop(s, "use_fold_attribute")
-        else:
-            row.operator("object.vpffd_bind", icon="MOD_LATTICE")
-        if bound:
-            self.draw_status(layout, ob)
-            bake.draw_bake(layout, ob)
 
-    @staticmethod
-    def draw_cage(layout, ob):
-        box = layout.box()
-        try:
-            cells = cage.cage_cells(ob)
-            box.label(text=f"VP-FFD cage: {len(cells)} cells, {len(ob.data.vertices)} points", icon="MESH_ICOSPHERE")
-        except ValueError as exc:
-            box.label(text=str(exc), icon="ERROR")
-        box.label(text="Bind meshes to it from their own VP-FFD panel")
-        box.operator("object.vpffd_cage_fit", icon="FULLSCREEN_ENTER")
+class OBJECT_PT_vpffd_folds(_BoundSubPanel, bpy.types.Panel):
+    bl_label = "Folds"
+    bl_options = {"DEFAULT_CLOSED"}
 
-    @staticmethod
-    def draw_status(layout, ob):
+    def draw_header(self, context):
+        self.layout.prop(context.object.vpffd, "use_fold_attribute", text="")
+
+    def draw(self, context):
+        layout = self.draw_split()
+        info = engine.status(context.object)
+        if context.object.vpffd.use_fold_attribute:
+            message(layout, context, f"the attribute '{engine.JACOBIAN_ATTRIBUTE}' holds the "
+                                     "Jacobian determinant of every vertex")
+        if info.folds is not None and not (info.error or info.paused or info.switched_off):
+            message(layout, context, f"{count(info.folds)} inverted vertices" if info.folds
+                    else "the lattice does not fold space here",
+                    icon="ERROR" if info.folds else "CHECKMARK")
+        layout.operator("object.vpffd_check_folds", icon="VIEWZOOM")
+
+
+class OBJECT_PT_vpffd_overlay(_BoundSubPanel, bpy.types.Panel):
+    bl_label = "Corrected Lattice"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw_header(self, context):
+        self.layout.prop(context.object.vpffd, "show_overlay", text="")
+
+    def draw(self, context):
+        message(self.layout, context, "draws the control points the solver used and the volume "
+                                      "in the 3D viewport, while VP-FFD is solving")
+
+
+class OBJECT_PT_vpffd_bake(_BoundSubPanel, bpy.types.Panel):
+    bl_label = "Bake"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        bake.draw_bake(self.draw_split(), context.object)
+
+
+class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
+    bl_label = "Status"
+
+    def draw(self, context):
+        ob = context.object
+        layout = self.layout
         info = engine.status(ob)
-        box = layout.box()
-        if info.error:
-            box.label(text=info.error, icon="ERROR")
+        if bake.using_cache(ob):
+            message(layout, context, "playing the baked cache: VP-FFD is not solving (Use Live "
+                                     "in Bake switches back)", icon="FILE_CACHE")
+            return
         if info.switched_off:
-            box.label(text="The VP-FFD modifier is switched off in the viewport", icon="HIDE_ON")
+            message(layout, context, "the VP-FFD modifier is switched off in the viewport",
+                    icon="HIDE_ON")
+            return
+        if info.paused:
+            message(layout, context, info.paused, icon="PAUSE")
+            return
+        if info.error:
+            message(layout, context, info.error, icon="ERROR")
         if info.volume_percent is not None:
-            box.label(text=f"Volume {info.volume_percent:.4f}% of its input "
-                           f"(plain lattice: {info.plain_percent:.2f}%)")
+            message(layout, context, f"volume {info.volume_percent:.4f}% of its input "
+                                     f"(plain lattice: {info.plain_percent:.4f}%)", icon="CHECKMARK")
         if info.seconds is not None:
-            box.label(text=f"Solve {1e3 * info.seconds:.1f} ms on the {info.backend}, "
-                           f"{info.n_verts:,} vertices")
+            message(layout, context, f"solved in {1e3 * info.seconds:.1f} ms on the {info.backend}, "
+                                     f"{count(info.n_verts)} vertices", icon="TIME")
         if info.backend_reason and ob.vpffd.backend != "CPU":
-            box.label(text=info.backend_reason, icon="INFO")
+            message(layout, context, info.backend_reason, icon="INFO")
         if info.closed is False:
-            box.label(text="Open mesh: volume measured about the lattice centre", icon="INFO")
+            message(layout, context, "open mesh: the volume is measured about the lattice centre",
+                    icon="INFO")
+        if info.outside:
+            message(layout, context, engine.outside_message(info, cage.is_cage(ob.vpffd.lattice)),
+                    icon="INFO")
         if info.folds:
-            box.label(text=f"Lattice folds space: {info.folds} inverted vertices", icon="ERROR")
+            message(layout, context, f"the lattice folds space: {count(info.folds)} inverted "
+                                     "vertices", icon="ERROR")
         for text in info.warnings:
-            box.label(text=text, icon="ERROR")
-        box.operator("object.vpffd_check_folds", icon="VIEWZOOM")
+            message(layout, context, text, icon="ERROR")
 
 
-classes = (OBJECT_PT_vpffd,)
+classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_correction, OBJECT_PT_vpffd_pins,
+           OBJECT_PT_vpffd_folds, OBJECT_PT_vpffd_overlay, OBJECT_PT_vpffd_bake,
+           OBJECT_PT_vpffd_status)

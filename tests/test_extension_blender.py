@@ -530,7 +530,9 @@ def test_leaving_edit_mode_unchanged_clears_the_paused_message(ext):
     bpy.context.view_layer.objects.active = ball
     bpy.ops.object.mode_set(mode="EDIT")
     bpy.context.view_layer.update()
-    assert "Edit Mode" in (eng.stats(ball).get("error") or "")
+    info = eng.stats(ball)
+    assert "Edit Mode" in (info.get("paused") or "") and info.get("error") is None
+    assert "volume_percent" not in info, "figures of the last solve are not shown as current"
     bpy.ops.object.mode_set(mode="OBJECT")         # nothing moved: the inputs are as before
     bpy.context.view_layer.update()
     assert eng.stats(ball).get("error") is None
@@ -551,3 +553,40 @@ def test_switched_off_modifier_says_so_and_switching_on_solves_again(ext):
     info = eng.stats(ball)
     assert not info.get("switched_off") and info.get("error") is None
     assert abs(info["volume_percent"] - 100) <= 100 * VOLUME_TOL
+
+
+def test_vertices_outside_the_lattice_are_reported_while_they_are_outside(ext):
+    """The panel's outside-the-lattice warning holds while the mesh is partly outside (counted
+    here independently in lattice space) and goes when it is back inside."""
+    eng = _engine(ext)
+    ball, lat = _squashed_bound_ball(eng)
+    assert not eng.stats(ball).get("outside")
+    ball.location.x = 0.7                              # the ball (radius 0.8) pokes out at x = 1
+    bpy.context.view_layer.update()
+    co = np.array([v.co for v in ball.data.vertices], np.float64)
+    to_lat = np.array(lat.matrix_world.inverted() @ ball.matrix_world)
+    in_lat = co @ to_lat[:3, :3].T + to_lat[:3, 3]
+    grid = _points(lat)                                 # rest grid in lattice space
+    eps = 1e-6 * float(np.linalg.norm(grid.max(0) - grid.min(0)))
+    expected = int(((in_lat < grid.min(0) - eps) | (in_lat > grid.max(0) + eps)).any(1).sum())
+    info = eng.stats(ball)
+    assert expected > 0 and info.get("outside") == expected
+    assert "outside the lattice" in eng.outside_message(eng.status(ball), False)
+    ball.location.x = 0.0
+    bpy.context.view_layer.update()
+    assert not eng.stats(ball).get("outside")
+
+
+def test_nothing_stale_is_drawn_or_shown_while_switched_off(ext):
+    eng = _engine(ext)
+    ball, _ = _squashed_bound_ball(eng)
+    ball.vpffd.show_overlay = True
+    bpy.context.view_layer.update()
+    assert eng.overlay_geometry(ball) is not None
+    ball.vpffd.enabled = False
+    bpy.context.view_layer.update()
+    assert eng.overlay_geometry(ball) is None
+    assert "volume_percent" not in eng.stats(ball)
+    ball.vpffd.enabled = True
+    bpy.context.view_layer.update()
+    assert eng.overlay_geometry(ball) is not None and "volume_percent" in eng.stats(ball)

@@ -28,7 +28,7 @@ class BindingBase:
 
     Public attributes: `lattice`, `dtype`, `n_verts`, `n_faces`, `is_closed`, `rest_volume`,
     `n_islands`, `island_labels` (V,), `rest_island_volumes` (n_islands,), `influence` (V,),
-    `nbytes`.
+    `n_outside` (vertices outside the lattice's box or the cage's region), `nbytes`.
     """
 
     def deform(self, points):
@@ -297,6 +297,7 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
 
     finish(b, rel, tris, labels, n_slots)
     b.block_parts = parallel.split(n_blocks, V)
+    b.n_outside = lattice.outside_count(verts)
     return b
 
 

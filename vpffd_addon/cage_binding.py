@@ -9,6 +9,7 @@ from .binding import BindingBase, finish, prepare
 from .cage import Cage
 from .embedding import (_TET_DW, Elements, barycentric_weights, locate, nearest_boundary,
                         trilinear)
+from .linalg3 import det3, solve3
 
 OUTSIDE_MODES = ("FOLLOW", "STAY")
 _ROW_CHUNK = 256
@@ -80,9 +81,9 @@ class CageBinding(BindingBase):
         J1 = np.einsum("ska,skc->sca", dw, Y[idx])
         inside = self.elem >= 0
         M = np.broadcast_to(np.eye(3), J0.shape).copy()
-        M[inside] = np.linalg.solve(J0[inside].transpose(0, 2, 1), J1[inside].transpose(0, 2, 1)).transpose(0, 2, 1)
+        M[inside] = solve3(J0[inside].transpose(0, 2, 1), J1[inside].transpose(0, 2, 1)).transpose(0, 2, 1)
         s = self.slot_influence.astype(np.float64)[:, None, None]
-        det = np.linalg.det(np.eye(3) + s * (M - np.eye(3)))
+        det = det3(np.eye(3) + s * (M - np.eye(3)))
         if not np.isfinite(det).all():
             raise ValueError("the Jacobian overflows: the displacements are too large for the cage's cells")
         return det[self.slot]

@@ -7,6 +7,7 @@ Each embedded point is then a fixed combination of at most 8 refined points.
 import numpy as np
 
 from .cage import face_triangles
+from .linalg3 import det3, inv3, solve3
 from .sparse import Sparse
 
 #: Corners of a trilinear cell in bit order: corner k sits at (k & 1, k >> 1 & 1, k >> 2 & 1).
@@ -187,9 +188,9 @@ def locate(points, X, elements):
         w, dw = trilinear(np.full((len(hx), 3), 0.5))
         centre = np.einsum("mk,mkc->mc", w, cx[hx])
         J = np.einsum("mka,mkc->mca", dw, cx[hx])
-        good = np.abs(np.linalg.det(J)) > 1e-300
+        good = np.abs(det3(J)) > 1e-300
         Jinv = np.zeros_like(J)
-        Jinv[good] = np.linalg.inv(J[good])
+        Jinv[good] = inv3(J[good])
         slot = np.full(len(hexes), -1)
         slot[hx] = np.arange(len(hx))
         hp = np.flatnonzero(h)
@@ -320,10 +321,10 @@ def _newton(p, c, u, scale, steps):
 def barycentric(p, tx):
     """Barycentric coordinates (m, 3) (of corners 1..3) of points p (m, 3) in tetrahedra (m, 4, 3)."""
     M = (tx[:, 1:4] - tx[:, :1]).transpose(0, 2, 1)
-    det = np.linalg.det(M)
+    det = det3(M)
     lam = np.full((len(p), 3), -np.inf)
     good = np.abs(det) > 1e-300
-    lam[good] = np.linalg.solve(M[good], (p[good] - tx[good, 0])[:, :, None])[:, :, 0]
+    lam[good] = solve3(M[good], p[good] - tx[good, 0])
     return lam
 
 

@@ -18,6 +18,7 @@ from .binding import bind
 from .cage import Cage
 from .jacobian import jacobian_det
 from .lattice import Lattice
+from .linalg3 import affine, affine_inverse
 from .mesh import Topology
 
 
@@ -74,10 +75,7 @@ class FrameResult:
     binding: object = None         #: the binding used (None without faces)
     rebound: bool = False          #: whether this frame had to embed the positions anew
     solution: object = None        #: the `Solution` of a corrected frame
-
-
-def _transform(points, mat):
-    return points @ mat[:3, :3].T + mat[:3, 3]
+    outside: int = 0               #: positions outside the lattice's box (or the cage's region)
 
 
 class Pipeline:
@@ -106,7 +104,7 @@ class Pipeline:
         if last is not None and last[1].shape == X.shape and np.array_equal(last[0], M) \
                 and np.array_equal(last[1], X):
             return last[2]
-        verts = _transform(X.astype(np.float64), M)
+        verts = affine(X.astype(np.float64), M)
         self._last_space = (M.copy(), X.copy(), verts)
         return verts
 
@@ -161,12 +159,15 @@ class Pipeline:
             influence = weights * (weights * inp.strength) * lw
         # Strength scales every displacement alike: it scales the control points' displacement.
         P_used = grid + float(inp.strength) * (P - grid)
-        back = np.linalg.inv(M)
+        back = affine_inverse(M)
+        if not np.isfinite(back).all():
+            raise ValueError("matrix is singular: the object or the lattice is scaled to zero along an axis")
         if inp.tris is None:
             if inp.correct:
                 raise ValueError("no faces: the volume cannot be corrected")
             out = verts + influence[:, None] * lattice_eval.interpolate(lat, verts, P_used - grid)
-            return FrameResult(positions=_transform(out, back), points=P_used)
+            outside = lat.outside_count(verts) if isinstance(lat, Lattice) else 0
+            return FrameResult(positions=affine(out, back), points=P_used, outside=outside)
         binding, rebound = self._embed(inp, verts, influence)
         warnings = []
         solution = None
@@ -187,9 +188,10 @@ class Pipeline:
         else:
             sol = binding.solve(P_used, axes="", preserve_volume=False)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
-        return FrameResult(positions=_transform(out, back), points=used, input_volume=binding.rest_volume,
+        return FrameResult(positions=affine(out, back), points=used, input_volume=binding.rest_volume,
                            volume=volume, plain_volume=plain, warnings=tuple(warnings),
-                           binding=binding, rebound=rebound, solution=solution)
+                           binding=binding, rebound=rebound, solution=solution,
+                           outside=int(binding.n_outside))
 
     @staticmethod
     def folds(result):

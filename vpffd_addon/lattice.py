@@ -89,6 +89,18 @@ class Lattice(Bounded):
         w, v, u = np.meshgrid(cw, cv, cu, indexing="ij")
         return np.stack([u.ravel(), v.ravel(), w.ravel()], 1)
 
+    def outside_count(self, verts):
+        """How many of `verts` (V, 3) (lattice space) lie outside the lattice's box, beyond a
+        millionth of its size (an axis with a single point has no extent to be outside of)."""
+        v = np.asarray(verts, dtype=np.float64)
+        eps = 1e-6 * self.size
+        spans = np.flatnonzero(np.array(self.shape) > 1)
+        out = np.zeros(len(v), bool)
+        for a in spans:
+            col = v[:, a]
+            out |= (col < self.lo[a] - eps) | (col > self.hi[a] + eps)
+        return int(out.sum())
+
     def __repr__(self):
         return (f"Lattice(shape={self.shape}, interpolation={self.interpolation}, "
                 f"bounds=({tuple(self.lo)}, {tuple(self.hi)}))")

@@ -1,6 +1,8 @@
 """Triangle-mesh checks and topology: validation, closedness, connected components."""
 import numpy as np
 
+from . import parallel
+
 
 def check_verts(verts, name="verts"):
     """Return `verts` as a finite (V, 3) float64 array or raise ValueError naming the problem."""
@@ -99,8 +101,16 @@ class Topology:
     def __init__(self, tris, n_verts):
         self.n_verts = int(n_verts)
         self.tris = check_tris(tris, self.n_verts)
-        self.is_closed = is_closed(self.tris, self.n_verts)
-        self.labels, self.n_islands = connected_components(self.tris, self.n_verts)
+        # The two passes are independent and NumPy releases the GIL in their sorts and gathers:
+        # a big mesh runs them side by side on the worker threads.
+        jobs = [lambda: is_closed(self.tris, self.n_verts),
+                lambda: connected_components(self.tris, self.n_verts)]
+        if self.n_verts >= parallel.MIN_VERTS_PER_PART:
+            closed, components = parallel.run(lambda job: job(), jobs)
+        else:
+            closed, components = (job() for job in jobs)
+        self.is_closed = closed
+        self.labels, self.n_islands = components
         self.face_island = self.labels[self.tris[:, 0]]
         self.tris_t = np.ascontiguousarray(self.tris.T)     # (3, F): corner k of every face
         self.island_order = np.argsort(self.labels, kind="stable")

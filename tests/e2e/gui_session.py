@@ -1,0 +1,300 @@
+"""What a user does in Blender's real window, driven from timers inside the GUI (not `-b`).
+
+Run by `gui_window.run_session` as `blender --python gui_session.py -- OUT_DIR`: Blender opens its
+window on a virtual display; this script registers one timer that steps through a generator. Each
+`yield SECONDS` hands control back to Blender's event loop (playback, undo steps, modal
+operators and redraws happen only there). Operators run with the window's own 3D viewport in
+their context, as a click or a shortcut would run them. A screenshot is asked of the host (which
+captures the X display) by writing OUT_DIR/shot-NAME.request and waiting for
+OUT_DIR/shot-NAME.png.
+
+Writes OUT_DIR/results.json: {"checks": [[name, ok, detail], ...], "error": traceback or null},
+then quits Blender. The host test asserts on it; nothing here asserts.
+"""
+import json
+import os
+import sys
+import time
+import traceback
+
+import bpy
+import numpy as np
+
+OUT = sys.argv[sys.argv.index("--") + 1]
+CHECKS = []
+VOLUME_TOL = 1e-5
+
+
+def check(name, ok, detail=""):
+    CHECKS.append([name, bool(ok), str(detail)])
+
+
+def engine():
+    name = next(m for m in sys.modules if m.endswith(".operators.engine") and "vpffd" in m)
+    return sys.modules[name]
+
+
+def window_context():
+    win = bpy.context.window_manager.windows[0]
+    area = next(a for a in win.screen.areas if a.type == "VIEW_3D")
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    return dict(window=win, screen=win.screen, area=area, region=region)
+
+
+def op(path, **kw):
+    """Run bpy.ops.PATH in the window's 3D viewport as the user's click would: with an undo step
+    (a call from Python pushes none unless asked)."""
+    fn = bpy.ops
+    for part in path.split("."):
+        fn = getattr(fn, part)
+    with bpy.context.temp_override(**window_context()):
+        return fn("EXEC_DEFAULT", True, **kw)
+
+
+def show_modifier_tab():
+    win = bpy.context.window_manager.windows[0]
+    for area in win.screen.areas:
+        if area.type == "PROPERTIES":
+            area.spaces[0].context = "MODIFIER"
+
+
+def camera_view():
+    """Look through the scene camera in the window's 3D viewport, as Numpad 0 does."""
+    ctx = window_context()
+    ctx["area"].spaces[0].region_3d.view_perspective = "CAMERA"
+
+
+def select_only(ob):
+    layer = bpy.context.window_manager.windows[0].view_layer
+    for o in layer.objects:
+        o.select_set(o == ob)
+    layer.objects.active = ob
+
+
+def depsgraph():
+    return bpy.context.window_manager.windows[0].view_layer.depsgraph
+
+
+def mesh_arrays(me):
+    co = np.empty(len(me.vertices) * 3, np.float32)
+    me.vertices.foreach_get("co", co)
+    me.calc_loop_triangles()
+    tris = np.empty(len(me.loop_triangles) * 3, np.int32)
+    me.loop_triangles.foreach_get("vertices", tris)
+    return co.reshape(-1, 3), tris.reshape(-1, 3)
+
+
+def volume(co, tris):
+    """Enclosed volume from float32 coordinates, in float64 about the centroid (independent of
+    VP-FFD's own measurement)."""
+    v = co.astype(np.float64)
+    v -= v.mean(0)
+    a, b, c = v[tris[:, 0]], v[tris[:, 1]], v[tris[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def evaluated(ob):
+    ob_eval = ob.evaluated_get(depsgraph())
+    me = ob_eval.to_mesh()
+    try:
+        return mesh_arrays(me)
+    finally:
+        ob_eval.to_mesh_clear()
+
+
+def ratio(ob):
+    """(evaluated volume / the mesh's own volume, evaluated coordinates): nothing sits before
+    VP-FFD in the demos, so what reaches its slot is the mesh itself."""
+    co, tris = evaluated(ob)
+    own = volume(*mesh_arrays(ob.data))
+    return volume(co, tris) / own, co
+
+
+def screenshot(name):
+    """Ask the host for a capture of the display; wait (in the event loop) until it is there."""
+    request = os.path.join(OUT, f"shot-{name}.request")
+    done = os.path.join(OUT, f"shot-{name}.png")
+    open(request, "w").close()
+    t0 = time.time()
+    while not os.path.exists(done) and time.time() - t0 < 30:
+        yield 0.2
+    check(f"screenshot {name}", os.path.exists(done))
+
+
+def session():
+    eng = engine()
+    prefs = bpy.context.preferences
+    prefs.view.show_splash = False
+    yield 0.5
+
+    # Add > VP-FFD Demos > Bouncing Ball, as from the Add menu.
+    op("object.vpffd_demo_bouncing_ball")
+    show_modifier_tab()
+    ball = bpy.context.window_manager.windows[0].view_layer.objects.active
+    check("demo leaves the VP-FFD ball active and selected",
+          ball is not None and ball.vpffd.is_bound and ball.select_get(), getattr(ball, "name", None))
+    lattice = ball.vpffd.lattice
+    ball_name, lat_name = ball.name, lattice.name
+    scene = bpy.context.window_manager.windows[0].scene
+    scene.frame_set(18)                       # the squash
+    camera_view()
+    yield 1.0
+    r, _ = ratio(ball)
+    info = eng.status(ball)
+    check("squash keeps the volume (evaluated mesh)", abs(r - 1) <= VOLUME_TOL, r)
+    check("panel figure is the measured volume", info.volume_percent is not None
+          and abs(info.volume_percent / 100 - abs(r)) <= 1e-6, (info.volume_percent, r))
+    yield from screenshot("panel")
+
+    # Show Corrected Lattice: the overlay draws in the viewport.
+    ball.vpffd.show_overlay = True
+    yield 0.5
+    check("overlay has the corrected lattice", eng.overlay_geometry(ball) is not None)
+    yield from screenshot("overlay")
+    ball.vpffd.enabled = False                # switched off: nothing stale is drawn or shown
+    yield 0.5
+    info = eng.status(ball)
+    check("switched off: no overlay and no figures", eng.overlay_geometry(ball) is None
+          and info.volume_percent is None and info.switched_off, info)
+    ball.vpffd.enabled = True
+    ball.vpffd.show_overlay = False
+    yield 0.5
+
+    # Playback (Space): every frame shown keeps the volume.
+    scene.frame_set(1)
+    yield 0.3
+    seen = {}
+    op("screen.animation_play")
+    t0 = time.time()
+    while time.time() - t0 < 4.0:
+        yield 0.15
+        r, _ = ratio(ball)
+        seen[scene.frame_current] = r
+    op("screen.animation_cancel", restore_frame=False)
+    worst = max(abs(r - 1) for r in seen.values()) if seen else None
+    check("playback ran through frames", len(seen) >= 5, sorted(seen))
+    check("playback keeps the volume on every frame seen", worst is not None and worst <= VOLUME_TOL, worst)
+
+    # Lattice Edit Mode: Tab, select all, scale along Z; the mesh follows live, volume kept.
+    scene.frame_set(1)
+    yield 0.3
+    _, before = ratio(ball)
+    select_only(lattice)
+    op("object.mode_set", mode="EDIT")
+    op("lattice.select_all", action="SELECT")
+    op("transform.resize", value=(1.0, 1.0, 0.6))
+    yield 0.5
+    r, during = ratio(ball)
+    check("lattice Edit Mode: the mesh follows", float(np.abs(during - before).max()) > 1e-3,
+          float(np.abs(during - before).max()))
+    check("lattice Edit Mode: the volume is kept", abs(r - 1) <= VOLUME_TOL, r)
+    op("object.mode_set", mode="OBJECT")
+    yield 0.5
+    r, edited = ratio(ball)
+    check("after Edit Mode the volume is kept", abs(r - 1) <= VOLUME_TOL, r)
+
+    # Undo (Ctrl+Z) step by step back to before the edit, through the lattice's Edit Mode steps,
+    # then Redo (Ctrl+Shift+Z) as many: every state shows its own shape with the volume kept.
+    ratios, steps = [], 0
+    while steps < 8:
+        op("ed.undo")
+        steps += 1
+        yield 0.6
+        r, undone = ratio(bpy.data.objects[ball_name])
+        ratios.append(r)
+        lat_now = bpy.data.objects[lat_name]
+        if lat_now.mode == "OBJECT" and float(np.abs(undone - before).max()) <= 1e-5:
+            break
+    check("undo reaches the shape before the edit", float(np.abs(undone - before).max()) <= 1e-5,
+          (steps, float(np.abs(undone - before).max())))
+    for _ in range(steps):
+        op("ed.redo")
+        yield 0.6
+        r, redone = ratio(bpy.data.objects[ball_name])
+        ratios.append(r)
+    check("redo shows the edited shape again", float(np.abs(redone - edited).max()) <= 1e-5,
+          float(np.abs(redone - edited).max()))
+    worst = max(abs(r - 1) for r in ratios)
+    check("every undo and redo step keeps the volume", worst <= VOLUME_TOL, (worst, len(ratios)))
+    if bpy.data.objects[lat_name].mode != "OBJECT":
+        select_only(bpy.data.objects[lat_name])
+        op("object.mode_set", mode="OBJECT")
+        yield 0.3
+
+    # Ctrl+A on the VP-FFD modifier (Blender's own Apply): the mesh keeps what was shown.
+    ball = bpy.data.objects[ball_name]        # undo replaced the Python objects
+    check("after undo and redo the panel matches the mesh",
+          abs(eng.status(ball).volume_percent / 100 - abs(ratio(ball)[0])) <= 1e-6,
+          (eng.status(ball).volume_percent, ratio(ball)[0]))
+    lattice = ball.vpffd.lattice
+    scene = bpy.context.window_manager.windows[0].scene
+    scene.frame_set(18)
+    yield 0.5
+    _, shown = ratio(ball)
+    select_only(ball)
+    mod = next(m for m in ball.modifiers if m.type == "NODES" and "VP-FFD" in m.name)
+    op("object.modifier_apply", modifier=mod.name)
+    yield 0.5
+    own, _ = mesh_arrays(ball.data)
+    check("Apply makes the shown shape the mesh's own", float(np.abs(own - shown).max()) <= 1e-5,
+          float(np.abs(own - shown).max()))
+    check("Apply leaves the object unbound, without VP-FFD attributes", not ball.vpffd.is_bound
+          and not [a.name for a in ball.data.attributes if a.name.startswith("vpffd")],
+          [a.name for a in ball.data.attributes])
+    op("ed.undo")
+    yield 0.8
+    ball = bpy.data.objects[ball_name]
+    lattice = ball.vpffd.lattice
+    r, _ = ratio(ball)
+    check("undo of Apply: bound and correcting again", ball.vpffd.is_bound and abs(r - 1) <= VOLUME_TOL, r)
+
+    # Delete the lattice (X): the mesh shows undeformed and the panel says why.
+    select_only(lattice)
+    op("object.delete")
+    yield 0.8
+    co, _ = evaluated(ball)
+    own, _ = mesh_arrays(ball.data)
+    info = eng.status(ball)
+    check("deleted lattice: the mesh shows undeformed", float(np.abs(co - own).max()) <= 1e-6,
+          float(np.abs(co - own).max()))
+    check("deleted lattice: the panel says so", "deleted" in (info.error or ""), info.error)
+
+    # A bake in progress, on the cage demo (slow enough to be seen).
+    op("object.vpffd_demo_squeezed_tube")
+    yield 0.5                                 # the Properties editor learns the new active object
+    show_modifier_tab()
+    camera_view()
+    tube = bpy.context.window_manager.windows[0].view_layer.objects.active
+    path = os.path.join(OUT, "tube.pc2")
+    with bpy.context.temp_override(**window_context(), object=tube, active_object=tube):
+        bpy.ops.object.vpffd_bake("EXEC_DEFAULT", filepath=path)
+    yield 0.3
+    yield from screenshot("bake")
+    t0 = time.time()
+    while not os.path.exists(path) and time.time() - t0 < 120:
+        yield 0.5
+    check("the bake finishes in the window", os.path.exists(path))
+
+
+def main():
+    gen = session()
+
+    def tick():
+        try:
+            return next(gen)
+        except StopIteration:
+            finish(None)
+        except Exception:
+            finish(traceback.format_exc())
+        return None
+
+    bpy.app.timers.register(tick, first_interval=1.0)
+
+
+def finish(error):
+    with open(os.path.join(OUT, "results.json"), "w") as fh:
+        json.dump({"checks": CHECKS, "error": error}, fh, indent=1)
+    bpy.app.timers.register(lambda: bpy.ops.wm.quit_blender() and None, first_interval=0.2)
+
+
+main()

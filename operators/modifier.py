@@ -7,6 +7,11 @@ Its node group does two things with the geometry that reaches it:
   slot untouched, so the handler reads the slot's input from the end of the stack;
 - the *result*: the input moved by per-point offsets read, by index, from the object's solver
   helper (a hidden vertex-only mesh object that the handler writes after every solve).
+In Blender 4.4 and newer the tap's points are instances of nothing (an instance per point, its
+transform carrying the position, its attributes the weight): Python reads them from the object's
+evaluated geometry, while renders and exporters (Alembic, USD), which see only instances of
+something, get nothing of VP-FFD's. Blender 4.2 and 4.3 offer Python no way to read those, so there
+the tap is a point cloud, which those exporters write as a second copy of the mesh.
 Being a real modifier, it is toggled, reordered and removed like any other. The helper also keeps
 what Bind saves (pins, a cage's rest shape) as custom properties: it is local data of the file,
 writable even when the mesh is linked from a library.
@@ -17,7 +22,8 @@ import numpy as np
 MODIFIER_NAME = "VP-FFD"
 NODE_GROUP_NAME = "VP-FFD"
 _TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
-_VERSION = 3                 # the tag's value: groups of older versions are rebuilt
+_VERSION = 4                 # the tag's value: groups of older versions are rebuilt
+_KIND = "vpffd_tap_kind"     # how the group's tap is made: "INSTANCES" or "POINTS"
 LATTICE_INPUT = "Lattice"   # object input: makes the lattice or cage a dependency of the mesh
 SOLVER_INPUT = "Solver"     # object input: the helper holding the offsets
 GROUP_INPUT = "Vertex Group"
@@ -51,18 +57,30 @@ def _store(N, link, geometry, data_type, domain, name, value=None):
     return store
 
 
-def _marked_points(N, link, geometry, mode, marker):
-    """Mesh to Points (radius 0) of `geometry`'s `mode` elements, every point marked with the
-    boolean attribute `marker`; returns (the points node, the marking node)."""
+def tap_kind():
+    """The tap this Blender can read: instances of nothing (4.4+) or a point cloud."""
+    return "INSTANCES" if hasattr(bpy.types.Object, "evaluated_geometry") else "POINTS"
+
+
+def _marked_points(N, link, geometry, mode, marker, kind):
+    """One tap element per `mode` element of `geometry` (attributes carried along), every one
+    marked with the boolean attribute `marker`: points of radius 0, or for kind "INSTANCES"
+    instances of nothing on them. Returns (the first node, the marking node)."""
     points = N.new("GeometryNodeMeshToPoints")
     points.mode = mode
     points.inputs["Radius"].default_value = 0.0
     link(geometry, points.inputs["Mesh"])
-    return points, _store(N, link, points.outputs[0], "BOOLEAN", "POINT", marker, True)
+    if kind != "INSTANCES":
+        return points, _store(N, link, points.outputs[0], "BOOLEAN", "POINT", marker, True)
+    instances = N.new("GeometryNodeInstanceOnPoints")
+    link(points.outputs[0], instances.inputs["Points"])
+    instances.location = (0, 0)
+    return points, _store(N, link, instances.outputs[0], "BOOLEAN", "INSTANCE", marker, True)
 
 
 def _build(ng):
-    """(Re)build the node group's nodes and interface."""
+    """(Re)build the node group's nodes and interface, with the tap this Blender reads."""
+    kind = tap_kind()
     ng.nodes.clear()
     for item in list(ng.interface.items_tree):
         ng.interface.remove(item)
@@ -114,7 +132,7 @@ def _build(ng):
     link(pick_invert.outputs[0], pick_exists.inputs["True"])
     store_weight = _store(N, link, gin.outputs[0], "FLOAT", "POINT", WEIGHT_ATTRIBUTE,
                           pick_exists.outputs[0])
-    points, mark = _marked_points(N, link, store_weight.outputs[0], "VERTICES", TAP_ATTRIBUTE)
+    points, mark = _marked_points(N, link, store_weight.outputs[0], "VERTICES", TAP_ATTRIBUTE, kind)
 
     # Face tap (only when asked): one point per triangle of the triangulated input, carrying its
     # three vertex indices, in the triangle's own corner order.
@@ -130,7 +148,7 @@ def _build(ng):
         store = _store(N, link, geometry, "INT", "FACE", name, vertex.outputs["Vertex Index"])
         geometry = store.outputs[0]
         store.location = (-150 + 200 * k, -700)
-    face_points, face_mark = _marked_points(N, link, geometry, "FACES", FACE_ATTRIBUTE)
+    face_points, face_mark = _marked_points(N, link, geometry, "FACES", FACE_ATTRIBUTE, kind)
     only_if = N.new("GeometryNodeSwitch")
     only_if.input_type = "GEOMETRY"
     link(gin.outputs[FACES_INPUT], only_if.inputs["Switch"])
@@ -148,13 +166,19 @@ def _build(ng):
                        (face_mark, 650, -700), (only_if, 850, -500), (join, 1050, 0), (gout, 1250, 0)):
         node.location = (x, y)
     ng[_TAG] = _VERSION
+    ng[_KIND] = kind
+
+
+def _current(ng):
+    return ng.get(_TAG) == _VERSION and ng.get(_KIND) == tap_kind()
 
 
 def offset_node_group():
-    """The shared node group (created once per file, rebuilt when made by an older version)."""
+    """The shared node group (created once per file, rebuilt when made by an older version or
+    for another kind of tap, e.g. a file saved by Blender 4.2 opened in 4.4)."""
     for ng in bpy.data.node_groups:
         if ng.get(_TAG):
-            if ng.get(_TAG) != _VERSION and ng.library is None:
+            if not _current(ng) and ng.library is None:
                 _build(ng)
             return ng
     ng = bpy.data.node_groups.new(NODE_GROUP_NAME, "GeometryNodeTree")
@@ -228,7 +252,7 @@ def ensure(obj):
     mod = find(obj)
     if mod is None:
         mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
-    if mod.node_group is None or mod.node_group.get(_TAG) != _VERSION:
+    if mod.node_group is None or not _current(mod.node_group):
         mod.node_group = offset_node_group()
     helper(obj, mod)
     sync_inputs(obj, mod)
@@ -310,22 +334,25 @@ def read_offsets(helper_ob):
 # ------------------------------------------------------------------------------------ the tap
 
 def _tap_cloud(ob_eval, depsgraph):
-    """(the evaluated point cloud that carries the tap or None, an object to keep alive while
-    the cloud is read)."""
+    """(a point cloud that carries the tap or None, an object to keep alive while it is read,
+    whether its positions are in `instance_transform`)."""
     get = getattr(ob_eval, "evaluated_geometry", None)
     if get is not None:        # newer Blender: the object's own geometry set
         try:
             geometry = get()
         except TypeError:      # tagged for an evaluation that has not run yet
-            return None, None
-        return geometry.pointcloud, geometry
+            return None, None, False
+        instances = geometry.instances_pointcloud()
+        if instances is not None and instances.attributes.get(TAP_ATTRIBUTE) is not None:
+            return instances, (geometry, instances), True
+        return geometry.pointcloud, geometry, False
     original = ob_eval.original
     for inst in depsgraph.object_instances:
         # Before that, the non-mesh components of a mesh object appear as instances of it.
         if inst.is_instance and inst.object.type == "POINTCLOUD" and inst.parent is not None \
                 and inst.parent.original == original:
-            return inst.object.data, None
-    return None, None
+            return inst.object.data, None, False
+    return None, None, False
 
 
 def read_tap(ob_eval, depsgraph):
@@ -333,16 +360,23 @@ def read_tap(ob_eval, depsgraph):
     geometry that reached the VP-FFD slot in this evaluation, in the object's space; the
     triangles only while the modifier's Tap Faces input is on. None when no tap reached the end of
     the stack (the modifier is off, or a later Geometry Nodes modifier dropped point clouds)."""
-    cloud, _alive = _tap_cloud(ob_eval, depsgraph)
+    cloud, _alive, from_instances = _tap_cloud(ob_eval, depsgraph)
     if cloud is None:
         return None
     attrs = cloud.attributes
-    position, weight, mark = (attrs.get(n) for n in ("position", WEIGHT_ATTRIBUTE, TAP_ATTRIBUTE))
+    position = attrs.get("instance_transform" if from_instances else "position")
+    weight, mark = attrs.get(WEIGHT_ATTRIBUTE), attrs.get(TAP_ATTRIBUTE)
     if position is None or mark is None:
         return None
     n = len(position.data)
-    co = np.empty(n * 3, np.float32)
-    position.data.foreach_get("vector", co)
+    if from_instances:
+        # An instance's position is the translation of its transform (stored column by column).
+        matrices = np.empty(n * 16, np.float32)
+        position.data.foreach_get("value", matrices)
+        co = np.ascontiguousarray(matrices.reshape(n, 4, 4)[:, 3, :3])
+    else:
+        co = np.empty(n * 3, np.float32)
+        position.data.foreach_get("vector", co)
     w = np.ones(n, np.float32)
     if weight is not None and weight.data_type == "FLOAT":
         weight.data.foreach_get("value", w)

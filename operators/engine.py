@@ -456,7 +456,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
                 return False
             _zero_offsets(obj, state)   # a defined result: whatever reaches the slot, undeformed
             _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
-                                  "Geometry Nodes modifier after it drops point clouds?)")
+                                  "Geometry Nodes modifier after it drops instances or point clouds?)")
             return False
         X, weights, tapped_tris = tap
         # Animated settings (volume scale, strength, ...) have this evaluation's values on the

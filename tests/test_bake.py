@@ -525,3 +525,33 @@ def test_draw_bake_offers_the_right_buttons(bk, tmp_path):
     assert drawn() == ["object.vpffd_bake", "object.vpffd_use_live"]
     bk.switch_to_live(ball)
     assert drawn() == ["object.vpffd_bake", "object.vpffd_use_cache"]
+
+
+def test_status_panel_says_what_is_shown(bk, tmp_path):
+    """The Status sub-panel, drawn into a recording layout: figures while VP-FFD solves (the
+    volume as the status measured it), none while the modifier is off or the baked cache plays."""
+    import importlib
+    from types import SimpleNamespace
+    status_panel = importlib.import_module(bk.engine.__package__ + ".panel").OBJECT_PT_vpffd_status
+    ball, _ = _rig()
+    bpy.context.scene.frame_set(6)
+
+    def drawn():
+        log = []
+        fake = SimpleNamespace(layout=_Recorder(log))
+        context = SimpleNamespace(object=ball, region=None, preferences=bpy.context.preferences)
+        status_panel.draw(fake, context)
+        return " ".join(c[3].get("text", "") for c in log if c[1] == "label")
+
+    info = bk.engine.status(ball)
+    text = drawn()
+    assert f"Volume {info.volume_percent:.4f}% of its input" in text and "switched off" not in text
+    _vp_modifier(ball).show_viewport = False
+    bpy.context.view_layer.update()
+    text = drawn()
+    assert "switched off" in text and "Volume" not in text
+    _vp_modifier(ball).show_viewport = True
+    bpy.context.view_layer.update()
+    bk.bake(ball, bpy.context.scene, str(tmp_path / "s.pc2"), FIRST, 3, switch=True)
+    text = drawn()
+    assert "playing the baked cache" in text.lower() and "Volume" not in text

@@ -159,8 +159,7 @@ def _build_scene(verts, tris, points):
     n_points = nu * nv * nw
 
     # Mesh at identity, built through foreach_set only.
-    _harness()                        # puts tests/ on sys.path
-    from blender_ref import triangle_mesh
+    from tests.blender_ref import triangle_mesh
     ob = bpy.data.objects.new("bench_mesh", triangle_mesh(verts, tris, "bench_mesh"))
     scene.collection.objects.link(ob)
 
@@ -264,10 +263,7 @@ def gpu_figures(sizes, repeat):
 
 
 def _harness():
-    tests = os.path.join(_ROOT, "tests")
-    if tests not in sys.path:
-        sys.path.insert(0, tests)
-    import extension_harness
+    from tests import extension_harness
     return extension_harness
 
 

@@ -48,15 +48,14 @@ def _spread(ms):
 
 
 def _mesh_object(bpy, verts, tris):
-    sys.path.insert(0, os.path.join(_ROOT, "tests"))
-    from blender_ref import triangle_mesh
+    from tests.blender_ref import triangle_mesh
     ob = bpy.data.objects.new("Ball", triangle_mesh(verts, tris, "Ball"))
     bpy.context.scene.collection.objects.link(ob)
     return ob
 
 
 def _lattice(bpy):
-    from blender_ref import squash_lattice
+    from tests.blender_ref import squash_lattice
     return squash_lattice("Lattice", LATTICE, (1.0 / (LATTICE[0] - 1),) * 3, 0.6, 0.15)  # [-0.5, 0.5]
 
 
@@ -78,7 +77,7 @@ def _scene(bpy, eh, scenario, slot, verts, tris):
                 mover.location = (x, 0.05 * x, 0)
                 mover.keyframe_insert("location", frame=f)
         if scenario == "armature":
-            from blender_ref import bone_weights_by_height, two_bone_armature
+            from tests.blender_ref import bone_weights_by_height, two_bone_armature
             rig = two_bone_armature("Rig", 0.5, frames=(1, last))
             lat_ob.parent = rig
             lat_ob.parent_type = "BONE"
@@ -253,8 +252,7 @@ def run(engine_module_loader):
     import importlib
 
     import bpy
-    sys.path.insert(0, os.path.join(_ROOT, "tests"))
-    import extension_harness as eh
+    from tests import extension_harness as eh
     module = engine_module_loader()
     engine = importlib.import_module(module + ".operators.engine")
     handlers = importlib.import_module(module + ".operators.handlers")

@@ -44,12 +44,10 @@ from typing import List, NamedTuple
 import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-TESTS = os.path.join(ROOT, "tests")
-for _path in (ROOT, TESTS):
-    if _path not in sys.path:
-        sys.path.insert(0, _path)
+if ROOT not in sys.path:          # run as a script rather than `python -m demos.render_demos`
+    sys.path.insert(0, ROOT)
 
-import extension_harness as eh  # noqa: E402  (tests/: build and install with Blender's tools)
+from tests import extension_harness as eh  # noqa: E402  (build and install with Blender's tools)
 
 VOLUME_TOL = 1e-5                 # relative; a VP-FFD object further from rest fails the run
 DEFAULT_RESOLUTION = (480, 270)

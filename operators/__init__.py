@@ -5,7 +5,7 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import bake, cage, demos, gpu_backend, handlers, ops, overlay, panel, properties
+from . import bake, cage, demos, gpu_backend, handlers, log, ops, overlay, panel, properties
 
 classes = (properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
            + cage.classes)
@@ -14,6 +14,7 @@ _register_classes, _unregister_classes = bpy.utils.register_classes_factory(clas
 
 
 def register():
+    log.install()
     _register_classes()
     properties.register()
     handlers.register()
@@ -30,3 +31,4 @@ def unregister():
     handlers.unregister()
     properties.unregister()
     _unregister_classes()
+    log.uninstall()

@@ -22,6 +22,7 @@ existing file that is not a cache of that format, a missing folder (unless "Crea
 then that one folder is made, inside an existing one, and nothing more). Writing is atomic
 (`vpffd_addon.pointcache`): a cancelled or failed bake leaves nothing under the final name.
 """
+import logging
 import os
 import tempfile
 import time
@@ -33,9 +34,11 @@ from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..vpffd_addon import pointcache
 from . import engine, modifier
+from .cache_modifier import CACHE_MODIFIER_NAME, find_cache, using_cache
 from .text import report
 
-CACHE_MODIFIER_NAME = "VP-FFD Cache"
+log = logging.getLogger(__name__)
+
 FORMATS = {"PC2": ".pc2", "MDD": ".mdd"}
 FORMAT_ITEMS = [
     ("PC2", "PC2", "Point Cache 2 (little-endian float32; start frame and rate in the header)"),
@@ -159,18 +162,6 @@ def _prepare_folder(path, make_folder):
 
 
 # ------------------------------------------------------------------------------- the modifier
-
-def find_cache(obj):
-    """The object's VP-FFD cache modifier (a Mesh Cache modifier named "VP-FFD Cache"), or None."""
-    mod = obj.modifiers.get(CACHE_MODIFIER_NAME)
-    return mod if mod is not None and mod.type == "MESH_CACHE" else None
-
-
-def using_cache(obj):
-    """True when the object plays its baked cache (the cache modifier is on)."""
-    mod = find_cache(obj)
-    return mod is not None and (mod.show_viewport or mod.show_render)
-
 
 def check_bakeable(obj, scene=None):
     """Raise BakeError naming what stops `obj` from being baked (in `scene`)."""
@@ -509,7 +500,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         description="Create the file's folder if it does not exist (that one folder only)")
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         return _bound_mesh(context)
 
     def _fill_defaults(self, context):
@@ -521,11 +512,11 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         if not self.properties.is_property_set("frame_end"):
             self.frame_end = scene.frame_end
 
-    def invoke(self, context, event):
+    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         self._fill_defaults(context)
         return context.window_manager.invoke_props_dialog(self, width=420)
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         layout.use_property_split = True
         layout.prop(self, "filepath")
@@ -546,7 +537,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         col.prop(self, "frame_end")
         layout.prop(self, "use_switch")
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         self._fill_defaults(context)
         try:
             baker = Baker(context.object, context.scene, self.filepath, self.frame_start,
@@ -571,7 +562,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         try:
             while not baker.step():
                 if baker.done % step == 0:
-                    print(f"VP-FFD: baked {baker.done}/{baker.total} frames")
+                    log.info("baked %d/%d frames", baker.done, baker.total)
         except BakeError as exc:
             baker.abort()
             report(self, "ERROR", str(exc))
@@ -615,7 +606,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
         if workspace is not None:
             workspace.status_text_set(None)
 
-    def modal(self, context, event):
+    def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         try:
             return self._modal(context, event)
         except BaseException as exc:  # never leave a running bake (or its temporary file) behind
@@ -624,7 +615,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
             report(self, "ERROR", f"bake failed: {type(exc).__name__}: {exc}")
             return {"CANCELLED"}
 
-    def _modal(self, context, event):
+    def _modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
         baker = self._baker
         if event.type == "ESC" and event.value == "PRESS":
             self._stop(context)
@@ -657,7 +648,7 @@ class OBJECT_OT_vpffd_bake(bpy.types.Operator):
                 pass
         return status
 
-    def cancel(self, context):
+    def cancel(self, context: bpy.types.Context) -> None:
         """Blender ended the modal operator (e.g. a file was loaded): discard the bake."""
         self._stop(context)
         if getattr(self, "_baker", None) is not None:
@@ -680,11 +671,11 @@ class OBJECT_OT_vpffd_use_cache(bpy.types.Operator):
         description="Scene frame of the cache's first frame (default: read from the file)")
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         ob = context.object
         return ob is not None and ob.type == "MESH" and modifier.find(ob) is not None
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.object
         try:
             if self.filepath:
@@ -709,11 +700,11 @@ class OBJECT_OT_vpffd_use_live(bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         ob = context.object
         return ob is not None and ob.type == "MESH" and modifier.find(ob) is not None
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         try:
             switch_to_live(context.object)
         except BakeError as exc:

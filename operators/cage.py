@@ -1,7 +1,7 @@
-"""Cages of any topology as mesh objects (issue 7): their vertices are the cage points, their
-edges draw the cells, and the cells themselves travel in the mesh as the integer custom property
-`vpffd_cells`. Operators make one from a box, by extruding polygons into layers, and fit one
-around the selected meshes.
+"""Cages of any topology as mesh objects (docs/design.md, "Cages of any topology"): their
+vertices are the cage points, their edges draw the cells, and the cells themselves travel in the
+mesh as the integer custom property `vpffd_cells`. Operators make one from a box, by extruding
+polygons into layers, and fit one around the selected meshes.
 """
 import bpy
 import numpy as np
@@ -140,7 +140,7 @@ class OBJECT_OT_vpffd_cage_add_box(bpy.types.Operator):
         name="Margin", default=0.05, min=0.0, soft_max=1.0, subtype="FACTOR",
         description="Space left around the selected meshes, as a fraction of their size")
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         try:
             targets = _selected_meshes(context)
             if targets:
@@ -184,11 +184,11 @@ class OBJECT_OT_vpffd_cage_from_polygons(bpy.types.Operator):
         description="Extrude to both sides of the polygons, so that they sit in the cage's middle")
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         ob = context.active_object
         return ob is not None and ob.type == "MESH" and ob.mode == "OBJECT" and not is_cage(ob)
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.active_object
         me = ob.data
         if not len(me.polygons):
@@ -243,11 +243,11 @@ class OBJECT_OT_vpffd_cage_fit(bpy.types.Operator):
         description="Scale the cage by one factor on all axes (keeps its proportions)")
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         ob = context.active_object
         return is_cage(ob) and ob.mode == "OBJECT"
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         cage_ob = context.active_object
         targets = _selected_meshes(context, exclude=cage_ob)
         if not targets:
@@ -278,7 +278,7 @@ class VIEW3D_MT_vpffd_cages(bpy.types.Menu):
     bl_label = "VP-FFD Cage"
     bl_idname = "VIEW3D_MT_vpffd_cages"
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         layout = self.layout
         layout.operator(OBJECT_OT_vpffd_cage_add_box.bl_idname, icon="MESH_CUBE")
         layout.operator(OBJECT_OT_vpffd_cage_from_polygons.bl_idname, icon="MOD_SOLIDIFY")

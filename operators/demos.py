@@ -1,5 +1,5 @@
-"""Demo scenes in the Add menu: the paper's bouncing ball and twisting cube (seeds/003, Figures 1
-and 6), each next to a plain Lattice modifier copy so the difference shows in one frame, and a tube
+"""Demo scenes in the Add menu: the paper's bouncing ball and twisting cube (Hahmann et al.
+2011, Figures 1 and 6), each next to a plain Lattice modifier copy so the difference shows in one frame, and a tube
 in a cylindrical cage (MacCracken & Joy), next to the same cage without correction."""
 import math
 
@@ -348,7 +348,7 @@ class _DemoOperator:
         name="New Scene", default=True,
         description="Build the demo in a new scene (otherwise in the current one)")
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         scene = context.scene
         if self.new_scene:
             scene = bpy.data.scenes.new(self.scene_name)
@@ -410,7 +410,7 @@ class VIEW3D_MT_vpffd_demos(bpy.types.Menu):
     bl_label = "VP-FFD Demos"
     bl_idname = "VIEW3D_MT_vpffd_demos"
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         self.layout.operator(OBJECT_OT_vpffd_demo_bouncing_ball.bl_idname, icon="MESH_UVSPHERE")
         self.layout.operator(OBJECT_OT_vpffd_demo_twisting_cube.bl_idname, icon="MESH_CUBE")
         self.layout.operator(OBJECT_OT_vpffd_demo_squeezed_tube.bl_idname, icon="MESH_CYLINDER")

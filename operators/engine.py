@@ -8,6 +8,7 @@ written), the VP-FFD modifier and its solver helper (which also keeps what Bind 
 cage's rest shape). The pipeline's caches are rebuilt on demand, e.g. after loading a file.
 """
 import dataclasses
+import logging
 import time
 from typing import Optional
 
@@ -16,6 +17,9 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import linalg3
 from . import cage, gpu_backend, meshio, modifier
+from .cache_modifier import find_cache
+
+log = logging.getLogger(__name__)
 
 LEGACY_ATTRIBUTES = ("vpffd_offset", "vpffd_weight")  # written by earlier versions
 PIN_ATTRIBUTE = "vpffd_pin"         # pinned vertices, in files of earlier versions
@@ -71,7 +75,7 @@ _reported = {}  # object session_uid -> last error printed, so a failing frame r
 def _set_stats(obj, **values):
     st = _stats[obj.session_uid] = Status(**values)
     if st.error and _reported.get(obj.session_uid) != st.error:
-        print(f"VP-FFD: {obj.name}: {st.error}")  # the console and farm logs, once per new problem
+        log.warning("%s: %s", obj.name, st.error)  # the console and farm logs, once per new problem
     _reported[obj.session_uid] = st.error
     return st
 
@@ -757,7 +761,6 @@ def release(obj):
 def unbind(obj):
     """Remove the VP-FFD modifier (with its solver helper; and a baked cache's Mesh Cache
     modifier) and the attributes; the mesh's coordinates were never changed."""
-    from .bake import find_cache
     mesh = obj.data
     modifier.remove(obj)
     cache = find_cache(obj)

@@ -1,4 +1,5 @@
-"""GPU path of the volume-preserving solve: Blender's `gpu` compute shaders (issue 6).
+"""GPU path of the volume-preserving solve: Blender's `gpu` compute shaders (docs/design.md, "The
+GPU dispatch plan").
 
 The same sequential per-direction closed form as `vpffd_addon.solve` (lattice-axis directions,
 one volume row, no pins, no mobility, islands off), run as compute-shader kernels on data uploaded
@@ -33,7 +34,7 @@ terms), then the final coordinates (V x 4 floats) and the N corrected offsets. T
 closed form (here k = 1: lambda = r / |alpha|^2) runs on the CPU in float64.
 
 Read-back: ``np.array(tex.read())`` and ``np.asarray(memoryview(buf))`` give WRONG values in Blender
-4.2-5.0 (NOTES.md section 6); `read_texture` flattens the buffer first, which is right and zero-copy.
+4.2-5.0; `read_texture` flattens the buffer first, which is right and zero-copy.
 """
 import math
 import threading

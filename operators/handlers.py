@@ -1,9 +1,13 @@
 """Application handlers, managed in one place. All are @persistent (they survive file loads) and
 none lets an exception reach Blender: `engine.update` records problems for the panel instead."""
+import logging
+
 import bpy
 from bpy.app.handlers import persistent
 
 from . import engine, modifier
+
+log = logging.getLogger(__name__)
 
 _updating = False  # our own writes trigger depsgraph updates: do not recurse into them
 
@@ -16,26 +20,26 @@ def _guarded(scene, depsgraph):
     try:
         engine.update_scene(scene, depsgraph)
     except Exception as exc:  # never raise into Blender
-        print(f"VP-FFD: update failed: {exc}")
+        log.error("update failed: %s", exc)
     finally:
         _updating = False
 
 
 @persistent
-def on_frame_change(scene, depsgraph=None):
+def on_frame_change(scene: bpy.types.Scene, depsgraph: "bpy.types.Depsgraph | None" = None) -> None:
     """Every frame (viewport, playback, F12 and command-line renders, which pass their depsgraph)."""
     _guarded(scene, depsgraph)
 
 
 @persistent
-def on_depsgraph_update(scene, depsgraph=None):
+def on_depsgraph_update(scene: bpy.types.Scene, depsgraph: "bpy.types.Depsgraph | None" = None) -> None:
     """Live edits: lattice points, shape keys, transforms, settings. Objects whose inputs did not
     change are skipped by their input signature, so our own attribute writes end the loop."""
     _guarded(scene, depsgraph)
 
 
 @persistent
-def on_load(*_args):
+def on_load(*_args) -> None:
     """A loaded file brings bound objects but no cached bindings: drop stale ones, lock the
     interface during renders (handlers change data), and solve the current frame."""
     engine.forget()
@@ -51,11 +55,11 @@ def on_load(*_args):
         if context.scene is not None:
             _guarded(context.scene, context.evaluated_depsgraph_get())
     except Exception as exc:
-        print(f"VP-FFD: after loading: {exc}")
+        log.error("after loading: %s", exc)
 
 
 @persistent
-def on_undo(*_args):
+def on_undo(*_args) -> None:
     """Undo and Redo restore the settings and the solver helpers' offsets but not the panel
     figures: solve the restored state again, so that the panel describes what is shown. The
     pipelines' caches stay: their keys hold every input, so a binding is reused exactly when the
@@ -66,7 +70,7 @@ def on_undo(*_args):
         if context.scene is not None:
             _guarded(context.scene, context.evaluated_depsgraph_get())
     except Exception as exc:
-        print(f"VP-FFD: after undo: {exc}")
+        log.error("after undo: %s", exc)
 
 
 _HANDLERS = (

@@ -9,7 +9,7 @@ class _ObjectOperator:
     bl_options = {"REGISTER", "UNDO"}
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         ob = context.object
         return ob is not None and ob.type == "MESH"
 
@@ -18,7 +18,7 @@ class _BoundOperator(_ObjectOperator):
     """An operator on a mesh that is bound already."""
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         return super().poll(context) and context.object.vpffd.is_bound
 
 
@@ -28,14 +28,14 @@ class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
     bl_label = "Bind"
 
     @classmethod
-    def description(cls, context, properties):
+    def description(cls, context: bpy.types.Context, properties) -> str:
         ob = context.object
         if ob is not None and ob.type == "MESH" and ob.vpffd.is_bound:
             return ("Bind the mesh again with the current settings (pins, a cage's rest shape); "
                     "the VP-FFD modifier stays where it is in the stack")
         return cls.__doc__
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.object
         try:
             warnings = engine.bind(ob, context.evaluated_depsgraph_get())
@@ -53,7 +53,7 @@ class OBJECT_OT_vpffd_unbind(_BoundOperator, bpy.types.Operator):
     bl_idname = "object.vpffd_unbind"
     bl_label = "Unbind"
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         engine.unbind(context.object)
         return {"FINISHED"}
 
@@ -63,7 +63,7 @@ class OBJECT_OT_vpffd_apply(_BoundOperator, bpy.types.Operator):
     bl_idname = "object.vpffd_apply"
     bl_label = "Apply"
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         try:
             engine.apply(context.object, context.evaluated_depsgraph_get())
         except (engine.BindError, ValueError) as exc:
@@ -78,7 +78,7 @@ class OBJECT_OT_vpffd_save_shape_key(_BoundOperator, bpy.types.Operator):
     bl_idname = "object.vpffd_save_shape_key"
     bl_label = "Save as Shape Key"
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.object
         try:
             name, before = engine.save_shape_key(ob, context.evaluated_depsgraph_get())
@@ -99,7 +99,7 @@ class OBJECT_OT_vpffd_check_folds(_BoundOperator, bpy.types.Operator):
     bl_label = "Check Folds"
     bl_options = {"REGISTER"}
 
-    def execute(self, context):
+    def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.object
         n = engine.check_folds(ob, context.evaluated_depsgraph_get())
         if n is None:

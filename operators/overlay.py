@@ -4,10 +4,14 @@ percentage next to each bound object whose "Show Corrected Lattice" is on.
 Only the draw callbacks touch `gpu`/`blf`, and only when Blender draws a 3D viewport; nothing runs
 at import or registration, and nothing is drawn in background mode.
 """
+import logging
+
 import bpy
 import numpy as np
 
 from . import engine
+
+log = logging.getLogger(__name__)
 
 LATTICE_COLOUR = (0.15, 0.85, 0.95, 0.9)
 TEXT_COLOUR = (1.0, 1.0, 1.0, 0.95)
@@ -44,7 +48,7 @@ def _draw_lattices():
             batch_for_shader(shader, "POINTS", {"pos": points.astype(np.float32)}).draw(shader)
         gpu.state.blend_set("NONE")
     except Exception as exc:  # drawing must never raise into Blender
-        print(f"VP-FFD overlay: {exc}")
+        log.error("overlay: %s", exc)
 
 
 def _draw_labels():
@@ -64,7 +68,7 @@ def _draw_labels():
             blf.position(0, at.x + 12, at.y + 12, 0)
             blf.draw(0, text)
     except Exception as exc:
-        print(f"VP-FFD overlay: {exc}")
+        log.error("overlay: %s", exc)
 
 
 def register():

@@ -35,13 +35,13 @@ class _SubPanel(_Panel):
     bl_parent_id = "OBJECT_PT_vpffd"
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         return _settings(context) is not None
 
 
 class _BoundSubPanel(_SubPanel):
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         s = _settings(context)
         return s is not None and s.is_bound
 
@@ -50,10 +50,10 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
     bl_label = "Volume-Preserving Lattice (VP-FFD)"
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         return context.object is not None and context.object.type == "MESH"
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         layout = self.draw_split()
         ob = context.object
         if cage.is_cage(ob):
@@ -94,11 +94,11 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
     bl_label = "Cage"
 
     @classmethod
-    def poll(cls, context):
+    def poll(cls, context: bpy.types.Context) -> bool:
         s = _settings(context)
         return s is not None and cage.is_cage(s.lattice)
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         s = context.object.vpffd
         col = self.draw_split().column()
         col.prop(s, "cage_depth")
@@ -108,7 +108,7 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
 class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
     bl_label = "Correction"
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         s = context.object.vpffd
         col = self.draw_split().column()
         col.prop(s, "axes")
@@ -128,7 +128,7 @@ class OBJECT_PT_vpffd_pins(_SubPanel, bpy.types.Panel):
     bl_label = "Pins"
     bl_options = {"DEFAULT_CLOSED"}
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
         s = ob.vpffd
         col = self.draw_split().column()
@@ -147,10 +147,10 @@ class OBJECT_PT_vpffd_folds(_BoundSubPanel, bpy.types.Panel):
     bl_label = "Folds"
     bl_options = {"DEFAULT_CLOSED"}
 
-    def draw_header(self, context):
+    def draw_header(self, context: bpy.types.Context) -> None:
         self.layout.prop(context.object.vpffd, "use_fold_attribute", text="")
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         layout = self.draw_split()
         info = engine.status(context.object)
         if context.object.vpffd.use_fold_attribute:
@@ -167,10 +167,10 @@ class OBJECT_PT_vpffd_overlay(_BoundSubPanel, bpy.types.Panel):
     bl_label = "Corrected Lattice"
     bl_options = {"DEFAULT_CLOSED"}
 
-    def draw_header(self, context):
+    def draw_header(self, context: bpy.types.Context) -> None:
         self.layout.prop(context.object.vpffd, "show_overlay", text="")
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         message(self.layout, context, "draws the control points the solver used and the volume "
                                       "in the 3D viewport, while VP-FFD is solving")
 
@@ -179,14 +179,14 @@ class OBJECT_PT_vpffd_bake(_BoundSubPanel, bpy.types.Panel):
     bl_label = "Bake"
     bl_options = {"DEFAULT_CLOSED"}
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         bake.draw_bake(self.draw_split(), context.object)
 
 
 class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
     bl_label = "Status"
 
-    def draw(self, context):
+    def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
         layout = self.layout
         info = engine.status(ob)

@@ -1,6 +1,7 @@
-"""Test session set-up.
+"""Test session set-up. `tests` is a package: pytest puts the repository root (the first folder
+above it without an `__init__.py`) on sys.path, so `import vpffd_addon` and `from . import
+_meshes` work however pytest is started, with no path edits.
 
-- The repository root is importable (`import vpffd_addon`) however pytest is started.
 - Blender's user resources point at a private temporary folder before anything imports bpy, so
   the extension installs through Blender's own installer without touching a real configuration.
 - `vpffd`: the extension, built into a zip and installed once per session (skips without bpy).
@@ -10,12 +11,7 @@ import sys
 
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-for path in (ROOT, os.path.dirname(os.path.abspath(__file__))):
-    if path not in sys.path:
-        sys.path.insert(0, path)
-
-import extension_harness as eh  # noqa: E402
+from . import extension_harness as eh
 
 eh.isolate_user_resources()
 

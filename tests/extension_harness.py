@@ -361,7 +361,7 @@ def installed_extension(tmp_path_factory, repo=DEFAULT_REPO):
 
     Wire it in tests/conftest.py::
 
-        import extension_harness as eh   # tests/ is on sys.path under pytest's rootdir mode
+        from . import extension_harness as eh   # in tests/conftest.py (tests is a package)
         eh.isolate_user_resources()      # at import time, before anything imports bpy
 
         @pytest.fixture(scope="session")

@@ -21,12 +21,10 @@ bpy = pytest.importorskip("bpy")
 import vpffd_addon as core  # noqa: E402  (repository copy: test meshes and an independent reader)
 from vpffd_addon import pointcache as pcache  # noqa: E402
 
-try:
-    from . import extension_harness as eh
-    from .blender_ref import triangle_mesh
-except ImportError:
-    import extension_harness as eh
-    from blender_ref import triangle_mesh
+from . import extension_harness as eh
+from .blender_ref import triangle_mesh
+
+pytestmark = pytest.mark.blender
 
 FIRST, LAST = 1, 10
 FRAMES = range(FIRST, LAST + 1)

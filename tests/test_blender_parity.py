@@ -14,10 +14,9 @@ import pytest
 bpy = pytest.importorskip("bpy")
 import bmesh  # noqa: E402  (only exists next to bpy)
 
-try:  # tests/ may or may not be a package
-    from . import blender_ref as ref
-except ImportError:
-    import blender_ref as ref
+from . import blender_ref as ref
+
+pytestmark = pytest.mark.blender
 
 REL_TOL = 1e-5
 KINDS = ("LINEAR", "CARDINAL", "CATMULL_ROM", "BSPLINE")

@@ -1,4 +1,4 @@
-"""Cages in Blender (issue 7): made by the installed extension's operators, moved by shape keys,
+"""Cages in Blender: made by the installed extension's operators, moved by shape keys,
 hooks and direct edits, and checked against the core and against volumes measured independently
 from the float32 coordinates Blender evaluates."""
 import numpy as np
@@ -8,12 +8,10 @@ bpy = pytest.importorskip("bpy")
 
 import vpffd_addon as core  # noqa: E402  (repository copy: the independent reference)
 
-try:
-    from .test_extension_blender import VOLUME_TOL, _bind, _evaluated, _mesh_object, _sphere, _volume
-    from . import extension_harness as eh
-except ImportError:
-    from test_extension_blender import VOLUME_TOL, _bind, _evaluated, _mesh_object, _sphere, _volume
-    import extension_harness as eh
+from .test_extension_blender import VOLUME_TOL, _bind, _evaluated, _mesh_object, _sphere, _volume
+from . import extension_harness as eh
+
+pytestmark = pytest.mark.blender
 
 
 @pytest.fixture
@@ -306,10 +304,7 @@ def test_renders_deform_with_the_cage_or_lattice_hidden_from_render(ext, kind, t
         _squash_key(control, amount=0.6)
         settings = dict(lattice=control, axes="NONE", cage_depth=1)
     else:
-        try:
-            from .test_extension_blender import _animate_squash, _lattice
-        except ImportError:
-            from test_extension_blender import _animate_squash, _lattice
+        from .test_extension_blender import _animate_squash, _lattice
         control = _lattice()
         _animate_squash(control, 0.6)
         settings = dict(lattice=control, axes="NONE")

@@ -1,4 +1,4 @@
-"""Cages of arbitrary topology (issue 7), against independent computations.
+"""Cages of arbitrary topology against independent computations.
 
 - Box cages: the embedding reproduces every point (W P0 = x) and translations; interior points
   converge to a tricubic uniform B-spline FFD of the same control points, written out here.
@@ -13,12 +13,10 @@ import pytest
 import vpffd_addon as vp
 from vpffd_addon.cage import box_cage, extrude
 
-try:
-    from . import _meshes as M
-    from .test_core_reference import kkt_solve, probe_dense_B
-except ImportError:
-    import _meshes as M
-    from test_core_reference import kkt_solve, probe_dense_B
+from . import _meshes as M
+from .test_core_reference import kkt_solve, probe_dense_B
+
+pytestmark = pytest.mark.core
 
 
 def cubic_bspline(s):
@@ -292,10 +290,7 @@ def _mixed_cage():
 
 @pytest.mark.parametrize("name", ["box", "jittered", "disc", "mixed"])
 def test_vectorised_refinement_equals_the_reference_rules(name):
-    try:
-        from .cage_reference import reference_levels
-    except ImportError:
-        from cage_reference import reference_levels
+    from .cage_reference import reference_levels
     rng = np.random.default_rng(2)
     cage = {"box": lambda: box_cage((2, 3, 1)), "jittered": lambda: jittered_box_cage(rng, (2, 2, 2)),
             "disc": lambda: disc_cage(5, layers=2), "mixed": _mixed_cage}[name]()

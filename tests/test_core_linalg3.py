@@ -1,7 +1,10 @@
 """The elementwise 3x3/4x4 linear algebra against LAPACK (NumPy's linalg) on random stacks."""
 import numpy as np
+import pytest
 
 from vpffd_addon import linalg3
+
+pytestmark = pytest.mark.core
 
 
 def _stack(seed, n=200):

@@ -11,10 +11,9 @@ from hypothesis import strategies as st
 
 import vpffd_addon as vp
 
-try:  # tests/ may or may not be a package
-    from . import _meshes as M
-except ImportError:
-    import _meshes as M
+from . import _meshes as M
+
+pytestmark = pytest.mark.core
 
 SEEDS = st.integers(0, 2 ** 32 - 1)
 VOL_REL = 1e-9

@@ -7,10 +7,9 @@ import pytest
 
 import vpffd_addon as vp
 
-try:
-    from . import _meshes as M
-except ImportError:
-    import _meshes as M
+from . import _meshes as M
+
+pytestmark = pytest.mark.core
 
 
 def _arrays(b):

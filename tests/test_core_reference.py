@@ -1,8 +1,8 @@
 """The core against independent dense reimplementations on small cases (V <= ~300, N <= 64).
 
 - The dense FFD matrix S B (V, N) is built twice: by probing `deform` with unit control-point
-  offsets, and from Blender's weight formulas written out here (NOTES.md section 1; Bernstein for
-  BEZIER). The two must agree, so the probe is cross-checked.
+  offsets, and from Blender's weight formulas written out here (docs/design.md, "The
+  deformation"; Bernstein for BEZIER). The two must agree, so the probe is cross-checked.
 - A one-direction solve is compared with the paper's eq. (17), alpha taken literally from eq. (10).
 - General solves (three directions, mobility, pins, islands) are compared with a sequential dense
   KKT solve written here with np.linalg.solve.
@@ -15,10 +15,9 @@ import pytest
 
 import vpffd_addon as vp
 
-try:  # tests/ may or may not be a package
-    from . import _meshes as M
-except ImportError:
-    import _meshes as M
+from . import _meshes as M
+
+pytestmark = pytest.mark.core
 
 KINDS = ("LINEAR", "CARDINAL", "CATMULL_ROM", "BSPLINE", "BEZIER")
 

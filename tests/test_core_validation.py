@@ -8,10 +8,9 @@ import pytest
 
 import vpffd_addon as vp
 
-try:  # tests/ may or may not be a package
-    from . import _meshes as M
-except ImportError:
-    import _meshes as M
+from . import _meshes as M
+
+pytestmark = pytest.mark.core
 
 
 @pytest.fixture(scope="module")

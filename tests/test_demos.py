@@ -15,12 +15,11 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-try:
-    from . import extension_harness as eh
-except ImportError:
-    import extension_harness as eh
+from . import extension_harness as eh
 
 from demos import render_demos as rd  # noqa: E402  (repository root is on sys.path: conftest)
+
+pytestmark = pytest.mark.blender
 
 VOLUME_TOL = 1e-5
 DEMO_KEYS = {"ball": {"plain", "vpffd_xy"}, "cube": {"plain", "vpffd_xy", "vpffd_z"},

@@ -11,12 +11,10 @@ bpy = pytest.importorskip("bpy")
 
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
-try:
-    from . import extension_harness as eh
-    from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
-except ImportError:
-    import extension_harness as eh
-    from blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+from . import extension_harness as eh
+from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+
+pytestmark = pytest.mark.blender
 
 VOLUME_TOL = 1e-5
 
@@ -590,3 +588,61 @@ def test_nothing_stale_is_drawn_or_shown_while_switched_off(ext):
     ball.vpffd.enabled = True
     bpy.context.view_layer.update()
     assert eng.overlay_geometry(ball) is not None and "volume_percent" in eng.stats(ball)
+
+
+def test_a_new_problem_is_logged_once_as_a_vpffd_line(ext, capsys):
+    """The console (and a farm's log) gets one `VP-FFD: <object>: <problem>` line per new problem,
+    through the extension's own logger."""
+    eng = _engine(ext)
+    ball, lat = _squashed_bound_ball(eng)
+    capsys.readouterr()
+    ball.vpffd.lattice = None
+    bpy.context.view_layer.update()
+    bpy.context.scene.frame_set(16)
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("VP-FFD: ")]
+    assert len(lines) == 1 and lines[0].startswith(f"VP-FFD: {ball.name}: ") and "lattice" in lines[0]
+
+
+def test_a_lattice_that_mirrors_space_mirrors_the_mesh_and_keeps_the_size_of_its_volume(ext):
+    """The lattice's points mirrored in Z (and squashed): Correction None gives the Lattice
+    modifier's mirrored mesh (negative volume); XYZ keeps the volume's size with the mirrored sign,
+    stays close to that mirrored shape (never turned inside out) and the panel says so."""
+    eng = _engine(ext)
+    ball = _sphere()
+    rest = _volume(ball)
+    lat = _lattice()
+    co = _points(lat)
+    co[:, 2] *= -0.8
+    lat.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    bpy.context.view_layer.update()
+    corrected, _ = _evaluated(ball)
+    vol = _volume(ball)
+    info = eng.stats(ball)
+    assert vol < 0 and abs(abs(vol) / rest - 1) <= VOLUME_TOL, (vol, rest)
+    assert abs(info["volume_percent"] / 100 - abs(vol) / rest) <= 1e-6
+    assert any("mirrors space" in w for w in info["warnings"]), info["warnings"]
+    ball.vpffd.axes = "NONE"
+    bpy.context.view_layer.update()
+    plain, _ = _evaluated(ball)
+    size = float(np.ptp(plain, 0).max())
+    assert float(np.abs(corrected - plain).max()) <= 0.15 * size, "close to the mirrored shape"
+
+
+def test_folds_are_counted_on_every_update_up_to_5000_vertices_and_on_request_above(ext):
+    eng = _engine(ext)
+    lat = _lattice()
+    co = _points(lat)
+    top = co[:, 2] > co[:, 2].max() - 1e-6
+    co[top, 2] = co[:, 2].min() + 0.4          # the top layer drops below the next one: a fold
+    lat.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
+    small = _sphere("Small", subdivisions=3)                         # 642 vertices
+    big = _sphere("Big", subdivisions=6, location=(0.01, 0, 0))      # 40,962 vertices
+    for ob in (small, big):
+        assert _bind(ob, lattice=lat, axes="NONE") == {"FINISHED"}
+    bpy.context.view_layer.update()
+    assert eng.stats(small).get("folds", 0) > 0
+    assert "folds" not in eng.stats(big), "above 5,000 vertices folds are counted on request"
+    with bpy.context.temp_override(object=big, active_object=big, selected_objects=[big]):
+        assert bpy.ops.object.vpffd_check_folds() == {"FINISHED"}
+    assert eng.stats(big)["folds"] > 0

@@ -13,10 +13,9 @@ import zipfile
 
 import pytest
 
-try:  # tests/ may or may not be a package
-    from . import extension_harness as eh
-except ImportError:
-    import extension_harness as eh
+from . import extension_harness as eh
+
+pytestmark = pytest.mark.blender
 
 try:
     eh.blender_ext_cli()

@@ -1,4 +1,4 @@
-"""Fuzzing cages (issue 7) with hostile input (hypothesis).
+"""Fuzzing cages with hostile input (hypothesis).
 
 - Cage construction from random points (NaN, inf, huge, tiny, collapsed) and random cell lists
   (wrong lengths, repeated or out-of-range indices, random face loops, shuffled orientations) either
@@ -15,10 +15,13 @@ CI runs `VPFFD_FUZZ_CAGE_EXAMPLES` examples per test (default 40), derandomized;
 import os
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, note, settings
 from hypothesis import strategies as st
 
 import vpffd_addon as vp
+
+pytestmark = pytest.mark.fuzz
 
 EXAMPLES = int(os.environ.get("VPFFD_FUZZ_CAGE_EXAMPLES", "40"))
 RANDOM = os.environ.get("VPFFD_FUZZ_RANDOM", "") not in ("", "0")

@@ -29,12 +29,10 @@ bpy = pytest.importorskip("bpy")
 
 import vpffd_addon as core  # noqa: E402  (repository copy: builds the test cages)
 
-try:
-    from . import extension_harness as eh
-    from .test_extension_blender import _evaluated
-except ImportError:
-    import extension_harness as eh
-    from test_extension_blender import _evaluated
+from . import extension_harness as eh
+from .test_extension_blender import _evaluated
+
+pytestmark = [pytest.mark.fuzz, pytest.mark.blender]
 
 EXAMPLES = int(os.environ.get("VPFFD_FUZZ_CAGE_BLENDER_EXAMPLES", "12"))
 RANDOM = os.environ.get("VPFFD_FUZZ_RANDOM", "") not in ("", "0")

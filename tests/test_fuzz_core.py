@@ -45,6 +45,8 @@ from hypothesis import strategies as st
 
 import vpffd_addon as vp
 
+pytestmark = pytest.mark.fuzz
+
 EXAMPLES = int(os.environ.get("VPFFD_FUZZ_CORE_EXAMPLES", "150"))
 RANDOM = os.environ.get("VPFFD_FUZZ_RANDOM", "") not in ("", "0")
 STRICT = os.environ.get("VPFFD_FUZZ_STRICT", "") not in ("", "0")

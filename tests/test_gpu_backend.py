@@ -16,6 +16,8 @@ import pytest
 
 import vpffd_addon as vp
 
+pytestmark = [pytest.mark.gpu, pytest.mark.blender]
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 BACKEND = os.path.join(ROOT, "operators", "gpu_backend.py")
 
@@ -120,7 +122,7 @@ def test_supports_and_choose():
 
 
 def test_readback_matches_to_list_and_is_fast(gb):
-    """The read-back trap (NOTES.md section 6): our flattened zero-copy read equals Buffer.to_list()."""
+    """The read-back trap (docs/design.md, "The GPU dispatch plan"): our flattened zero-copy read equals Buffer.to_list()."""
     rng = np.random.default_rng(3)
     for channels, n in ((4, gb.TW * 3 + 17), (1, gb.TW * 2 + 5), (2, 1000)):
         data = rng.normal(size=(n, channels)).astype(np.float32)
@@ -255,11 +257,11 @@ def test_the_extension_solves_on_the_gpu_when_asked_and_says_why_when_it_does_no
     """A bound object with backend GPU is solved by the compute shaders (same volume as the CPU);
     Auto keeps the CPU on software OpenGL and says so."""
     import bpy
-    eh = pytest.importorskip("extension_harness")
+    from . import extension_harness as eh
+    from .blender_ref import triangle_mesh
     engine = vpffd.module.operators.engine
     eh.reset_scene()
     verts, tris = vp.icosphere(3, 0.8)
-    triangle_mesh = pytest.importorskip("blender_ref").triangle_mesh
     ob = bpy.data.objects.new("Ball", triangle_mesh(verts, tris, "Ball"))
     bpy.context.scene.collection.objects.link(ob)
     lt = bpy.data.lattices.new("L")

@@ -15,12 +15,10 @@ bpy = pytest.importorskip("bpy")
 
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
-try:
-    from . import extension_harness as eh
-    from .blender_ref import evaluated_world, squash_lattice, triangle_mesh
-except ImportError:
-    import extension_harness as eh
-    from blender_ref import evaluated_world, squash_lattice, triangle_mesh
+from . import extension_harness as eh
+from .blender_ref import evaluated_world, squash_lattice, triangle_mesh
+
+pytestmark = pytest.mark.blender
 
 VOLUME_TOL = 1e-5
 #: Blender 4.4+ lets VP-FFD read a tap that exporters do not see (operators/modifier.py).

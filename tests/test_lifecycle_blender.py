@@ -14,12 +14,10 @@ bpy = pytest.importorskip("bpy")
 
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
-try:
-    from . import extension_harness as eh
-    from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
-except ImportError:
-    import extension_harness as eh
-    from blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+from . import extension_harness as eh
+from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+
+pytestmark = pytest.mark.blender
 
 
 @pytest.fixture

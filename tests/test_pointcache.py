@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 
 from vpffd_addon import pointcache as pc
 
+pytestmark = pytest.mark.core
+
 
 def _frames(rng, F=3, V=7):
     return rng.normal(0.0, 2.0, (F, V, 3))

@@ -9,7 +9,8 @@
 Method: Hahmann et al., "Volume Preserving FFD for Programmable Graphics Hardware" (2011).
 """
 from .bases import INTERPOLATIONS
-from .binding import Binding, bind
+from .binder import bind
+from .binding import Binding
 from .cage import Cage, box_cage, extrude
 from .cage_binding import CageBinding
 from .frame import FrameInputs, FrameResult, Pipeline

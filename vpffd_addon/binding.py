@@ -1,6 +1,6 @@
 """Binding a mesh to a lattice: the rest embedding, stored so that per-frame products are cheap.
 
-The whole deformation is ``x' = x0 + S B (P - P0)`` (NOTES.md section 2). B depends only on the rest
+The whole deformation is ``x' = x0 + S B (P - P0)`` (docs/design.md, "The deformation"). B depends only on the rest
 embedding, so it is built once here. Vertices are sorted by (island, lattice cell) and cut into
 blocks of `block` slots that share one set of Ku*Kv*Kw control points; products with B and B^T are
 then batched small matrix products per block. B is kept factored, (v x u) weights and w weights per
@@ -10,8 +10,10 @@ import numpy as np
 
 from . import parallel
 from .bases import axis_taps
+from .jacobian import lattice_jacobian_det
 from .lattice import Lattice
 from .mesh import Topology, check_verts
+from .solve import solve
 from .volume import face_volumes, gradient_component
 
 _BLOCK_SIZES = (64, 32, 16, 8)
@@ -44,7 +46,6 @@ class BindingBase:
               mobility=None, pins=(), islands=False):
         """Volume-preserving FFD for control points `points` (N, 3): a `Solution`.
         The options are documented at `vpffd_addon.solve.solve`."""
-        from .solve import solve
         return solve(self, points, axes=axes, directions=directions, volume_scale=volume_scale,
                      preserve_volume=preserve_volume, mobility=mobility, pins=pins, islands=islands)
 
@@ -134,7 +135,6 @@ class Binding(BindingBase):
 
     def jacobian_det(self, points):
         """det(d x' / d x) at every vertex for control points `points` (N, 3): (V,) float64."""
-        from .jacobian import lattice_jacobian_det
         return lattice_jacobian_det(self, points)
 
     # -- products with the factored B (all in slot order; slots = padded, block-sorted vertices) --
@@ -203,31 +203,9 @@ class Binding(BindingBase):
         return np.bincount(keys, self._run_transpose(g).ravel(), k * N).reshape(-1, N)
 
 
-def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None, outside="FOLLOW",
-         topology=None):
-    """Bind a triangle mesh to `lattice` (a `Lattice`, or a `Cage` of any topology).
-
-    rest_verts: (V, 3) vertex positions in lattice space. tris: (F, 3) vertex indices.
-    influence: (V,) per-vertex factor on the displacement (vertex-group weight * strength); default 1.
-    dtype: float64 (exact to ~1e-15) or float32 (half the memory traffic; Blender stores float32).
-    Returns a `Binding`. Open meshes are allowed (`is_closed` False); their volume is measured
-    about the lattice centre. A closed mesh's islands are measured about their own bounding-box
-    centres (the same volume, without the rounding of coordinates far from the lattice).
-
-    For a `Cage` only: depth, the number of refinement levels (default 3; each level halves the
-    cells, so the embedding approaches the limit region); outside, what vertices outside the
-    region do: "FOLLOW" (move with the closest point of the region's boundary) or "STAY".
-    Returns a `cage_binding.CageBinding` then, with the same methods.
-
-    topology: a `Topology` of `tris` from an earlier bind (checked to match), so that binding the
-    same mesh at new positions (it moved through the lattice) only re-embeds them. The layout of
-    the result depends only on the arguments, never on an earlier binding.
-    """
-    from .cage import Cage
-    if isinstance(lattice, Cage):
-        from .cage_binding import bind_cage
-        return bind_cage(lattice, rest_verts, tris, influence, dtype, 3 if depth is None else depth, outside,
-                         topology=topology)
+def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None,
+                 topology=None):
+    """`bind` for a `Lattice` (see `vpffd_addon.binder.bind`): a `Binding`."""
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
     if depth is not None:

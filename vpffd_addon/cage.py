@@ -8,7 +8,10 @@ boundary control (`subdivision.py`); a mesh is embedded in the refined cells (`c
 import numpy as np
 
 from .lattice import Bounded
+from .cells import face_triangles, tet_volumes, unique_rows
+from .embedding import locate_in_tets
 from .mesh import check_verts
+from .subdivision import Complex, refine
 
 #: Faces of the cells that may be given by their corners alone, keyed by the number of corners.
 #: Corner order as in VTK / Blender's primitives: the base loop first, counter-clockwise seen
@@ -86,26 +89,6 @@ def tet_partition(points, faces):
     return np.array(tets)
 
 
-def face_triangles(f):
-    """Triangles (a, b, c) of an outward face loop f; -1 stands for the face's centroid."""
-    n = len(f)
-    if n == 3:
-        return [tuple(f)]
-    if n == 4:
-        k = int(np.argmin(f))   # the diagonal through the lowest index, the same from both sides
-        a, b, c, d = (f[(k + j) % 4] for j in range(4))
-        return [(a, b, c), (a, c, d)]
-    return [(-1, f[j], f[(j + 1) % n]) for j in range(n)]
-
-
-def tet_volumes(tets):
-    """(k,) signed volumes of tetrahedra (k, 4, 3)."""
-    a = tets[:, 1] - tets[:, 0]
-    b = tets[:, 2] - tets[:, 0]
-    c = tets[:, 3] - tets[:, 0]
-    return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
-
-
 class Cage(Bounded):
     """A control cage of any topology: points (N, 3) and closed polyhedral cells.
 
@@ -162,7 +145,6 @@ class Cage(Bounded):
         """The cage refined `depth` times (`subdivision.Refinement`): its points approach the
         deformable region as depth grows. Kept per depth: a cage does not change once made, and
         every mesh bound to it (or re-bound as it moves) shares the refinement."""
-        from .subdivision import refine
         if depth not in self._regions:
             self._regions[depth] = refine(self, depth)
         return self._regions[depth]
@@ -181,7 +163,6 @@ class Cage(Bounded):
         # Overlapping cells: no point, edge middle or centre of one cell may lie strictly inside
         # another (shared points and edges lie on the boundary, not inside; a face centroid would
         # not, for a warped quad).
-        from .embedding import locate_in_tets
         probes, probe_cell, tets, owner = [], [], [], []
         for c, faces in enumerate(self.cells):
             pts = sorted({p for f in faces for p in f})
@@ -206,7 +187,6 @@ class Cage(Bounded):
 def _check_incidence(n_points, cells):
     """Raise ValueError for points no cell uses, a face in more than two cells, or a face two cells
     list in the same direction (one of them inside out). cells: parsed face loops."""
-    from .subdivision import Complex, _unique_rows
     cx = Complex.from_cells(n_points, cells)
     used = np.zeros(n_points, bool)
     used[cx.he_from] = True
@@ -225,7 +205,7 @@ def _check_incidence(n_points, cells):
     # Within a cell every directed edge is used once (`_parse_cell`), so a directed edge found twice
     # on one face comes from two cells that list the face the same way round.
     he_face = cx.loop_face[cx.he_loop]
-    _, inverse = _unique_rows(np.stack([he_face, cx.he_from, cx.he_to], 1))
+    _, inverse = unique_rows(np.stack([he_face, cx.he_from, cx.he_to], 1))
     twice = np.flatnonzero(np.bincount(inverse)[inverse] > 1)
     if len(twice):
         f = he_face[twice[0]]

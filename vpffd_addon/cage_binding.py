@@ -7,7 +7,8 @@ import numpy as np
 
 from .binding import BindingBase, finish, prepare
 from .cage import Cage
-from .embedding import (_TET_DW, Elements, barycentric_weights, locate, nearest_boundary,
+from .cells import TET_DW
+from .embedding import (Elements, barycentric_weights, locate, nearest_boundary,
                         trilinear)
 from .linalg3 import det3, solve3
 
@@ -76,7 +77,7 @@ class CageBinding(BindingBase):
         X = self._extended(self.lattice.rest_points)
         Y = X + self._extended(D)
         idx = self.tidx
-        dw = np.where(self.is_hex[:, None, None], trilinear(self.param)[1], _TET_DW[None])
+        dw = np.where(self.is_hex[:, None, None], trilinear(self.param)[1], TET_DW[None])
         J0 = np.einsum("ska,skc->sca", dw, X[idx])
         J1 = np.einsum("ska,skc->sca", dw, Y[idx])
         inside = self.elem >= 0

@@ -6,7 +6,7 @@ Each embedded point is then a fixed combination of at most 8 refined points.
 """
 import numpy as np
 
-from .cage import face_triangles
+from .cells import TET_DW, face_triangles
 from .linalg3 import det3, inv3, solve3
 from .sparse import Sparse
 
@@ -59,11 +59,6 @@ def barycentric_weights(lam):
     w[:, 0] = 1.0 - lam.sum(1)
     w[:, 1:4] = lam
     return w
-
-
-_TET_DW = np.zeros((8, 3))
-_TET_DW[0] = -1.0
-_TET_DW[1:4] = np.eye(3)
 
 
 class Elements:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import lattice_eval
-from .binding import bind
+from .binder import bind
 from .cage import Cage
 from .jacobian import jacobian_det
 from .lattice import Lattice

@@ -1,7 +1,7 @@
 """Fixed worker threads for the per-frame kernels.
 
 NumPy releases the GIL in its gathers, small matrix products and ufuncs, so splitting blocks and
-faces over a few threads uses the other cores (NOTES.md section 5). The kernels are memory-bound:
+faces over a few threads uses the other cores (docs/performance.md). The kernels are memory-bound:
 part k of every array always goes to the same thread (part 0 to the caller), so the data a thread
 wrote in one step is still in its core's cache when it reads it in the next.
 """

@@ -1,7 +1,7 @@
 """Exact volume-preserving FFD: the sequential per-direction closed form (paper sections 3-5).
 
 Along one fixed direction e the volume is exactly linear in the control-point offsets, so each
-direction is a least-squares problem with linear constraints (NOTES.md section 4):
+direction is a least-squares problem with linear constraints (docs/design.md, "The closed form"):
 minimise ``sum_i |t_i|^2 / m_i`` subject to ``C t = r``, solved by ``t = M C^T (C M C^T)^+ r`` with
 M = diag(mobility). C has one volume row (alpha = (S B)^T g_e, eq. 10-12), or one per island, and
 one row per pin (paper eq. 21). With one volume row and unit mobility this is eq. (17).

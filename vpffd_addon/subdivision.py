@@ -20,27 +20,13 @@ refining cages of thousands of cells stays a matter of NumPy passes.
 """
 import numpy as np
 
+from .cells import unique_rows
 from .sparse import Sparse
-
-
-def _unique_rows(a):
-    """(unique rows (u, k), inverse (m,)) of an int array (m, k), rows in lexicographic order.
-    Columns are folded into one int64 key a pair at a time, ranked in between, so keys never
-    overflow."""
-    a = np.asarray(a, np.int64)
-    key = a[:, 0] - a[:, 0].min()
-    for j in range(1, a.shape[1]):
-        col = a[:, j] - a[:, j].min()
-        key = key * (int(col.max()) + 1) + col
-        if j < a.shape[1] - 1:
-            key = np.unique(key, return_inverse=True)[1].ravel()
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    return a[first], inverse.ravel()
 
 
 def _pairs(rows, cols):
     """Distinct (row, col) pairs, as two arrays sorted by row."""
-    u, _ = _unique_rows(np.stack([rows, cols], 1))
+    u, _ = unique_rows(np.stack([rows, cols], 1))
     return u[:, 0], u[:, 1]
 
 
@@ -108,13 +94,13 @@ class Complex:
         self.he_prev = he_id[rows, prv]
         # Faces: loops with the same points (sorted) are one face.
         key = np.sort(np.where(valid, loops, -1), axis=1)
-        _, self.loop_face = _unique_rows(key)
+        _, self.loop_face = unique_rows(key)
         _, self.face_loop = np.unique(self.loop_face, return_index=True)   # first loop of each face
         self.n_faces = len(self.face_loop)
         self.face_cells = np.bincount(self.loop_face, minlength=self.n_faces)
         lo = np.minimum(self.he_from, self.he_to)
         hi = np.maximum(self.he_from, self.he_to)
-        self.edge_verts, self.he_edge = _unique_rows(np.stack([lo, hi], 1))
+        self.edge_verts, self.he_edge = unique_rows(np.stack([lo, hi], 1))
         self.n_edges = len(self.edge_verts)
 
     @classmethod
@@ -223,7 +209,7 @@ def refine_once(cx):
     S = _stack([S_vert, S_edge, S_face, Cm], n)
 
     # New cells, one per (cell, point): numbered in (cell, point) order.
-    sub_key, he_sub = _unique_rows(np.stack([he_cell, cx.he_from], 1))
+    sub_key, he_sub = unique_rows(np.stack([he_cell, cx.he_from], 1))
     n_sub = len(sub_key)
     # The half-edge X -> V of the same cell, for every half-edge V -> X.
     order = np.lexsort((cx.he_to, cx.he_from, he_cell))

@@ -1,4 +1,5 @@
-"""Enclosed volume of triangle meshes and its gradient (NOTES.md section 3, paper eq. 5 and 10-12)."""
+"""Enclosed volume of triangle meshes and its gradient (docs/design.md, "The volume and its
+gradient"; paper eq. 5 and 10-12)."""
 import numpy as np
 
 from .mesh import check_tris, check_verts

@@ -17,10 +17,7 @@ import time
 
 import numpy as np
 
-try:
-    from . import blender_chroot as bc
-except ImportError:  # imported without its package
-    import blender_chroot as bc
+from . import blender_chroot as bc
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SESSION = os.path.join(HERE, "gui_session.py")

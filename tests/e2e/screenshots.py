@@ -5,11 +5,8 @@ import os
 import shutil
 import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-
-import blender_chroot as bc  # noqa: E402
-import gui_window as gw  # noqa: E402
+from . import blender_chroot as bc
+from . import gui_window as gw
 
 DOCS = os.path.join(bc.REPO_ROOT, "docs")
 

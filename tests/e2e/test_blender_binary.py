@@ -28,10 +28,7 @@ import textwrap
 import numpy as np
 import pytest
 
-try:
-    from . import blender_chroot as bc
-except ImportError:  # imported without its package
-    import blender_chroot as bc
+from . import blender_chroot as bc
 
 DEFORMERS = os.environ.get("VPFFD_E2E_DEFORMERS", "lattice,vpffd,cage").split(",")
 FRAMES = (1, 2, 3)

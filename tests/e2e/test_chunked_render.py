@@ -38,12 +38,8 @@ import textwrap
 import numpy as np
 import pytest
 
-try:
-    from . import blender_chroot as bc
-    from .test_blender_binary import _check, _volume
-except ImportError:  # imported without its package
-    import blender_chroot as bc
-    from test_blender_binary import _check, _volume
+from . import blender_chroot as bc
+from .test_blender_binary import _check, _volume
 
 FRAMES = list(range(1, 25))
 SAVED_FRAME = 10

@@ -11,12 +11,8 @@ virtual display; anything else failing fails the test. About 1-2 minutes.
 """
 import pytest
 
-try:
-    from . import blender_chroot as bc
-    from . import gui_window as gw
-except ImportError:  # imported without its package
-    import blender_chroot as bc
-    import gui_window as gw
+from . import blender_chroot as bc
+from . import gui_window as gw
 
 
 @pytest.fixture(scope="module")

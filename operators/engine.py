@@ -214,7 +214,7 @@ class _Bound:
                 if self.gpu is None or self.gpu_binding is not binding:
                     self.free()
                     self.gpu, self.gpu_binding = gpu_backend.GPUSolver(binding), binding
-                sol = self.gpu.solve(P, axes=options["axes"], volume_scale=options["volume_scale"])
+                sol = self.gpu.solve(P, **options)
                 self.backend = ("GPU", why)
                 return sol
             except gpu_backend.GPUUnavailable as exc:

@@ -1,21 +1,17 @@
 """GPU path of the volume-preserving solve: Blender's `gpu` compute shaders (docs/design.md, "The
 GPU dispatch plan").
 
-The same sequential per-direction closed form as `vpffd_addon.solve` (lattice-axis directions,
-one volume row, no pins, no mobility, islands off), run as compute-shader kernels on data uploaded
-once per binding. `gpu` is imported lazily inside functions, never at import or register time.
+Kernels and buffers only: the solve itself (closed forms, shares, pins, mobility, warnings and
+errors) is `vpffd_addon.solve.solve`, the one driver, which asks a steps object for the per-slot
+work (`vpffd_addon.steps`); here that object runs compute shaders on textures uploaded once per
+binding. The arrays uploaded are built and tested in the core (`vpffd_addon.gpu_layout`).
+What stays on the CPU and why: directions other than the lattice axes (their gradient needs the
+projected coordinates of every slot), per-island rows (one transposed product per island), cages
+(no fixed blocks of control points). `gpu` is imported lazily, never at import or register time.
 
-Data (all textures, 4096 texels wide, row-major; integers are stored exactly as floats < 2**24,
-because Python's `GPUTexture` only accepts FLOAT data):
-
-- per slot: ``x0`` (RGBA32F), weights ``wuv`` (slot * Kuv + k) and ``ww`` (slot * Kw + k, influence
-  folded in), ``s`` (influence), the one-ring CSR ``ring_start`` (n_slots + 1) and ``ring``
-  (RG32F: the two other corners (m, n) of every incident face, in cyclic order);
-- per block: ``block_run``; per run: ``run_idx`` (Kw * Kuv control points);
-- per control point: a CSR ``cp_start`` / ``cp_piece`` over the (block, tap) pieces it receives;
-- per vertex: ``slot``.
-
-Kernels (local size 256, no atomics anywhere, every sum in a fixed order):
+Textures are 4096 texels wide, row-major; integers are stored exactly as floats < 2**24, because
+Python's `GPUTexture` only accepts FLOAT data. Kernels (local size 256, no atomics anywhere,
+every sum in a fixed order):
 
 - ``forward``: X_c = x0_c + S B D_c for one component c (the standard FFD), slot-parallel;
 - ``gradient``: g = dV/dx_e per slot, a gather over the slot's incident faces (one-ring CSR) of the
@@ -23,32 +19,27 @@ Kernels (local size 256, no atomics anywhere, every sum in a fixed order):
 - ``reduce_slots``: per work group, tree sums of ``x0_e * g`` and ``|g s|`` (volume and flux terms);
 - ``pieces``: per (block, tap) the dot product of the block's weights with g (64 slots at most);
 - ``alpha``: per control point, the sum of its pieces in CSR order (the transposed product);
-- ``reduce_points``: tree sums of ``alpha^2`` and ``alpha * D_e``;
-- ``update``: D_e += lambda * alpha (the offset update), in place;
 - ``gather``: the final coordinates per vertex, ``X[slot[v]]``, one RGBA32F read-back.
 
-What crosses the bus per frame: up, the N control-point offsets (one RGBA32F texture); down, two
-partial-sum arrays per direction (one float pair per 256 slots / control points; the last level of
-the tree sum runs in float64 on the CPU, which keeps the volume exact to float32 rounding of the
-terms), then the final coordinates (V x 4 floats) and the N corrected offsets. The tiny k x k
-closed form (here k = 1: lambda = r / |alpha|^2) runs on the CPU in float64.
+What crosses the bus per direction: up, the N control-point offsets when they changed (one RGBA32F
+texture); down, one float pair per 256 slots (the last level of the tree sums runs in float64 on
+the CPU) and the N values of the transposed product; at the end the final coordinates (V x 4
+floats).
 
 Read-back: ``np.array(tex.read())`` and ``np.asarray(memoryview(buf))`` give WRONG values in Blender
 4.2-5.0; `read_texture` flattens the buffer first, which is right and zero-copy.
 """
-import math
 import threading
-import time
 import warnings
 
 import numpy as np
 
 try:
     from ..vpffd_addon import solve as _vsolve
-    from ..vpffd_addon import tolerances as _tol
+    from ..vpffd_addon.gpu_layout import gpu_layout
 except ImportError:  # loaded outside the extension package (tests, benchmarks)
     from vpffd_addon import solve as _vsolve
-    from vpffd_addon import tolerances as _tol
+    from vpffd_addon.gpu_layout import gpu_layout
 
 #: Texture width (texels); indices map to (i % TW, i // TW).
 TW = 4096
@@ -139,14 +130,11 @@ def supports(options=None, binding=None):
 
     options: a dict with any of axes, directions, pins, mobility, islands, preserve_volume.
     The GPU path does lattice-axis directions only (a string of distinct letters from "XYZ"),
-    one volume row (islands off), no pins, no mobility, preserve_volume on."""
+    one volume row (islands off) and preserve_volume on; pins and mobility work (their rows and
+    the closed forms are on the CPU side of the one solve driver)."""
     o = dict(options or {})
     if o.get("directions") is not None:
         return False, "the GPU path corrects along lattice axes only (world directions use the CPU)"
-    if o.get("pins"):
-        return False, "pins are solved on the CPU"
-    if o.get("mobility") is not None:
-        return False, "control-point mobility is solved on the CPU"
     if o.get("islands"):
         return False, "per-island volumes are solved on the CPU"
     if not o.get("preserve_volume", True):
@@ -297,27 +285,6 @@ void main() {
   for (int j = j0; j < j1; j++) acc += FETCH(piece, IFETCH(cp_piece, j)).r;
   imageStore(alpha_out, AT(i), vec4(acc));
 }"""),
-    "reduce_points": (
-        ("alpha", "disp"), (("partial", "RGBA32F", "WRITE"),), (("INT", "n"), ("INT", "comp")), """
-shared vec2 acc[GROUP];
-void main() {
-  int i = global_index();
-  uint t = gl_LocalInvocationID.x;
-  vec2 v = vec2(0.0);
-  if (i < n) {
-    float a = FETCH(alpha, i).r;
-    v = vec2(a * a, a * FETCH(disp, i)[comp]);
-  }
-""" + _GROUP_SUM_TAIL),
-    "update": (
-        ("alpha",), (("disp_io", "RGBA32F", "READ_WRITE"),), (("INT", "n"), ("INT", "comp"), ("FLOAT", "lam")), """
-void main() {
-  int i = global_index();
-  if (i >= n) return;
-  vec4 d = imageLoad(disp_io, AT(i));
-  d[comp] += lam * FETCH(alpha, i).r;
-  imageStore(disp_io, AT(i), d);
-}"""),
     "gather": (
         ("slot", "x_0", "x_1", "x_2"), (("verts_out", "RGBA32F", "WRITE"),), (("INT", "n"),), """
 void main() {
@@ -421,26 +388,26 @@ def _pad_to_vec4(a):
 
 
 class GPUSolver:
-    """A binding uploaded to the GPU once; `solve` runs the per-frame correction there.
-
-    Raises GPUUnavailable (no GPU context, no compute support, compile error, binding too large).
-    Use it from Blender's main thread only. `free()` drops the GPU textures early."""
+    """A lattice binding uploaded to the GPU once (its arrays from `vpffd_addon.gpu_layout`);
+    `steps` hands `vpffd_addon.solve.solve` the per-slot work as compute-shader kernels, and
+    `solve` runs that driver. Raises GPUUnavailable (no GPU context, no compute support, compile
+    error, binding too large). Use it from Blender's main thread only; `free()` drops the GPU
+    textures early. A binding that changes (a re-embedded frame) needs a new solver."""
 
     def __init__(self, binding):
-        t0 = time.perf_counter()
         ok, why = _binding_fits(binding)
         if not ok:
             raise GPUUnavailable(why)
         _check_context()
         b = self.binding = binding
-        self.n_slots = n_slots = b.x0.shape[1]
+        self.n_slots = b.x0.shape[1]
         self.n_blocks, self.Kw, self.bs = b.ww.shape
         self.Kuv = b.wuv.shape[1]
         self.N = b.lattice.n_points
         self.V = b.n_verts
         self.k = _kernels(self.bs, self.Kw, self.Kuv)
         try:
-            self._upload(b)
+            self._upload(gpu_layout(b))
         except GPUUnavailable:
             raise
         except Exception as exc:
@@ -449,46 +416,20 @@ class GPUSolver:
             self.origins = b.island_origin[0][None]
         else:
             self.origins = b._origins(np.arange(self.V))
-        self.upload_seconds = time.perf_counter() - t0
+        self.disp = None
 
-    def _upload(self, b):
-        KK = self.Kw * self.Kuv
-        n_slots = self.n_slots
-        tex = {}
-        tex["x0"] = make_texture(_pad_to_vec4(b.x0.T), 4)
-        # (n_blocks, K, bs) -> per slot rows of K
-        tex["wuv"] = make_texture(b.wuv.transpose(0, 2, 1).reshape(-1))
-        tex["ww"] = make_texture(b.ww.transpose(0, 2, 1).reshape(-1))
-        tex["s"] = make_texture(b.slot_influence)
-        tex["block_run"] = make_texture(b.block_run)
-        tex["run_idx"] = make_texture(b.run_idx.reshape(-1))
-        tex["slot"] = make_texture(b.slot)
-        # One-ring CSR: for every face corner (slot v at corner k), the other two corners in cyclic
-        # order; sorted by v (stable, so a slot's faces keep the binding's face order).
-        corners = np.concatenate(b.corner_parts, axis=1) if b.corner_parts else np.zeros((3, 0), np.int64)
-        owner = corners.ravel()
-        others = np.stack([np.concatenate([corners[1], corners[2], corners[0]]),
-                           np.concatenate([corners[2], corners[0], corners[1]])], 1)
-        order = np.argsort(owner, kind="stable")
-        start = np.zeros(n_slots + 1, np.int64)
-        np.cumsum(np.bincount(owner, minlength=n_slots), out=start[1:])
-        tex["ring_start"] = make_texture(start)
-        tex["ring"] = make_texture(others[order], 2)
-        # Per control point: the (block, tap) pieces that land on it, in (block, tap) order.
-        pieces_cp = b.run_idx[b.block_run].reshape(-1)        # control point of piece j
-        order = np.argsort(pieces_cp, kind="stable")
-        cstart = np.zeros(self.N + 1, np.int64)
-        np.cumsum(np.bincount(pieces_cp, minlength=self.N), out=cstart[1:])
-        tex["cp_start"] = make_texture(cstart)
-        tex["cp_piece"] = make_texture(order)
-        self.n_pieces = len(pieces_cp)
+    def _upload(self, layout):
+        tex = {name: make_texture(layout[name]) for name in
+               ("wuv", "ww", "s", "block_run", "run_idx", "slot", "ring_start", "cp_start", "cp_piece")}
+        tex["x0"] = make_texture(_pad_to_vec4(layout["x0"]), 4)
+        tex["ring"] = make_texture(layout["ring"], 2)
+        self.n_pieces = len(layout["cp_piece"])
         # Work textures.
-        tex["X"] = [empty_texture(n_slots) for _ in range(3)]
-        tex["g"] = empty_texture(n_slots)
+        tex["X"] = [empty_texture(self.n_slots) for _ in range(3)]
+        tex["g"] = empty_texture(self.n_slots)
         tex["piece"] = empty_texture(self.n_pieces)
         tex["alpha"] = empty_texture(self.N)
-        tex["partial_slots"] = empty_texture(-(-n_slots // GROUP), 4)
-        tex["partial_points"] = empty_texture(-(-self.N // GROUP), 4)
+        tex["partial_slots"] = empty_texture(-(-self.n_slots // GROUP), 4)
         tex["verts"] = empty_texture(self.V, 4)
         self.tex = tex
         self.nbytes = int(sum(t.width * t.height * (16 if t.format.startswith("RGBA") else
@@ -498,8 +439,6 @@ class GPUSolver:
     def free(self):
         """Drop the GPU textures (the solver cannot be used afterwards)."""
         self.tex = None
-
-    # -- kernels --
 
     def _run(self, name, n, samplers=(), images=(), ints=(), floats=()):
         sh = self.k[name]
@@ -513,122 +452,145 @@ class GPUSolver:
             sh.uniform_float(cname, float(v))
         return _dispatch(sh, n)
 
-    def _forward(self, c):
-        T = self.tex
-        self._run("forward", self.n_slots,
-                  [("x0", T["x0"]), ("wuv", T["wuv"]), ("ww", T["ww"]), ("block_run", T["block_run"]),
-                   ("run_idx", T["run_idx"]), ("disp", self.disp)],
-                  [("x_out", T["X"][c])], [("n", self.n_slots), ("comp", c)])
-
-    def _sums(self, tex, groups):
-        return read_texture(tex, groups, 4)[:, :2].astype(np.float64).sum(0)
-
-    def _step(self, st, a, divisor):
-        """One correction along lattice axis a; returns the volume before it."""
-        T = self.tex
-        a1, a2 = (a + 1) % 3, (a + 2) % 3
-        for c in (a1, a2):
-            if not st["fresh"][c]:
-                self._forward(c)
-                st["fresh"][c] = True
-        self._run("gradient", self.n_slots,
-                  [("xp", T["X"][a1]), ("xq", T["X"][a2]), ("ring_start", T["ring_start"]), ("ring", T["ring"])],
-                  [("g_out", T["g"])], [("n", self.n_slots)])
-        groups = self._run("reduce_slots", self.n_slots,
-                           [("x0", T["x0"]), ("g", T["g"]), ("s", T["s"])],
-                           [("partial", T["partial_slots"])], [("n", self.n_slots), ("comp", a)])
-        base, flux = self._sums(T["partial_slots"], groups)
-        self._run("pieces", self.n_pieces, [("wuv", T["wuv"]), ("ww", T["ww"]), ("g", T["g"])],
-                  [("piece", T["piece"])], [("n", self.n_pieces)])
-        self._run("alpha", self.N, [("cp_start", T["cp_start"]), ("cp_piece", T["cp_piece"]), ("piece", T["piece"])],
-                  [("alpha_out", T["alpha"])], [("n", self.N)])
-        groups = self._run("reduce_points", self.N, [("alpha", T["alpha"]), ("disp", self.disp)],
-                           [("partial", T["partial_points"])], [("n", self.N), ("comp", a)])
-        aa, ad = self._sums(T["partial_points"], groups)
-        before = base + ad
-        st["volume"] = before
-        if not math.sqrt(max(aa, 0.0)) > st["degenerate"] * flux:
-            return before
-        st["used"] = True
-        r = (st["target"] - before) / divisor
-        lam = r / aa
-        self._run("update", self.N, [("alpha", T["alpha"])], [("disp_io", self.disp)],
-                  [("n", self.N), ("comp", a)], [("lam", lam)])
-        st["fresh"][a] = False
-        st["volume"] = before + lam * aa
-        return before
-
-    def solve(self, points, axes="XYZ", volume_scale=1.0):
-        """Volume-preserving FFD along lattice axes `axes` for control points `points` (N, 3).
-
-        Returns a `vpffd_addon.Solution` (verts (V, 3) float64 in lattice space, corrected points,
-        volume, target_volume, plain_volume, directions, warnings, seconds), as `Binding.solve` with
-        the same arguments. Raises ValueError for bad input (as the CPU path) and GPUUnavailable
-        when the GPU fails (fall back to the CPU)."""
-        t0 = time.perf_counter()
+    def steps(self, binding):
+        """The per-slot steps of one solve on this solver's textures (`vpffd_addon.steps`)."""
+        if binding is not self.binding:
+            raise GPUUnavailable("the GPU solver was made for another binding")
         if self.tex is None:
             raise GPUUnavailable("the GPU solver was freed")
-        b = self.binding
-        D0 = b._displacements(points)
-        dirs = _vsolve.parse_directions(axes, None)
-        if len(dirs) == 0:
-            raise ValueError("no correction directions: give axes (e.g. 'XYZ') or directions")
-        scale = float(volume_scale)
-        if not np.isfinite(scale) or scale < 0:
-            raise ValueError(f"volume_scale must be finite and >= 0, got {volume_scale!r}")
+        return _GPUSteps(self)
+
+    def solve(self, points, **options):
+        """`vpffd_addon.solve.solve` of this solver's binding with the GPU's steps: the same
+        options, closed forms, warnings and errors as the CPU path, for what the GPU does (lattice
+        axes, one volume row, pins and mobility: `supports`). Raises ValueError for bad input and
+        GPUUnavailable when the GPU fails (fall back to the CPU)."""
+        ok, why = supports(options)
+        if not ok:
+            raise ValueError(why)
         _check_context()
         try:
-            return self._solve(np.asarray(points, np.float64), D0, dirs, scale, t0)
+            return _vsolve.solve(self.binding, points, steps=_StepsOf(self), **options)
         except (ValueError, GPUUnavailable):
             raise
         except Exception as exc:
             raise GPUUnavailable(f"the GPU solve failed ({type(exc).__name__}: {exc})") from None
 
-    def _solve(self, P, D0, dirs, scale, t0):
-        b = self.binding
-        axes = [int(np.argmax(np.abs(e))) for e in dirs]
-        D32 = D0.astype(np.float32)
-        self.disp = make_texture(_pad_to_vec4(D32), 4)
-        target = scale * b.rest_volume
-        f32 = True  # the GPU computes in float32 whatever the binding's dtype
-        rest = abs(b.rest_volume)
-        vol_scale = max(abs(target), rest, rest * 1e-6 + 1e-300)
-        met_rel = _tol.MET_REL_F32 if f32 else _tol.MET_REL_F64
-        st = {"fresh": [False, False, False], "used": False, "volume": None, "target": target,
-              "degenerate": _tol.DEGENERATE_REL_F32}
-        m = len(axes)
-        plain = None
-        for d, a in enumerate(axes):
-            before = self._step(st, a, m - d)
-            plain = before if plain is None else plain
-        warn = []
 
-        def met():
-            return abs(st["volume"] - target) <= met_rel * vol_scale
-        if not met():
-            for a in axes:
-                self._step(st, a, 1)
-                if met():
-                    break
-            if not met():
-                if not st["used"]:
-                    raise ValueError("the volume cannot change along any of the correction directions "
-                                     "(no lattice influence, all mobility 0, or a lattice with one point per axis)")
-                warn.append("the volume could not reach the target along the given directions")
-        T = self.tex
-        for c in range(3):
-            if not st["fresh"][c]:
-                self._forward(c)
-        self._run("gather", self.V, [("slot", T["slot"]), ("x_0", T["X"][0]), ("x_1", T["X"][1]),
-                                     ("x_2", T["X"][2])], [("verts_out", T["verts"])], [("n", self.V)])
-        verts = read_texture(T["verts"], self.V, 4)[:, :3].astype(np.float64)
-        verts += self.origins
-        D = read_texture(self.disp, self.N, 4)[:, :3].astype(np.float64)
-        # Only the offsets the solve changed move: untouched points come back bit-identical.
-        points = P + (D - D32.astype(np.float64))
-        if not (np.isfinite(verts).all() and np.isfinite(points).all()):
-            raise ValueError("the correction overflowed: coordinates or displacements are too large")
-        return _vsolve.Solution(
-            verts=verts, points=points, volume=float(st["volume"]), target_volume=float(target),
-            plain_volume=float(plain), directions=dirs, warnings=tuple(warn),
-            seconds=time.perf_counter() - t0)
+class _StepsOf:
+    """The `steps` factory `vpffd_addon.solve.solve` takes, for one GPU solver."""
+
+    def __init__(self, solver):
+        self.solver = solver
+        self.capabilities = _GPUSteps.capabilities
+
+    def __call__(self, binding):
+        return self.solver.steps(binding)
+
+
+class _GPUSteps:
+    """`vpffd_addon.steps.NumpySteps`'s interface on the GPU: X lives in textures, a gradient is
+    the texture `g` (its handle a token), sums come back as a few hundred partial sums whose last
+    level runs in float64 here, and the transposed product comes back as N floats. No directions
+    other than the lattice axes, one volume row (`capabilities`)."""
+
+    capabilities = frozenset({"plain_measure"})
+    float32 = True
+
+    def __init__(self, solver):
+        self.s = solver
+        self.fresh = [False, False, False]
+        self.uploaded = None          # the D now in the `disp` texture
+        self.g = None                 # token of the gradient now in the `g` texture
+        self.g_axis = None
+        self.sums = {}
+
+    def _upload(self, D):
+        if self.uploaded is None or not np.array_equal(self.uploaded, D):
+            self.s.disp = make_texture(_pad_to_vec4(np.asarray(D, np.float32)), 4)
+            self.uploaded = np.array(D, copy=True)
+
+    def refresh(self, components, D):
+        stale = [c for c in components if not self.fresh[c]]
+        if not stale:
+            return
+        self._upload(D)
+        T = self.s.tex
+        for c in stale:
+            self.s._run("forward", self.s.n_slots,
+                        [("x0", T["x0"]), ("wuv", T["wuv"]), ("ww", T["ww"]), ("block_run", T["block_run"]),
+                         ("run_idx", T["run_idx"]), ("disp", self.s.disp)],
+                        [("x_out", T["X"][c])], [("n", self.s.n_slots), ("comp", c)])
+            self.fresh[c] = True
+
+    def stale(self, axis):
+        self.fresh[axis] = False
+
+    def axis_gradient(self, axis, D):
+        a1, a2 = (axis + 1) % 3, (axis + 2) % 3
+        self.refresh((a1, a2), D)
+        T = self.s.tex
+        self.s._run("gradient", self.s.n_slots,
+                    [("xp", T["X"][a1]), ("xq", T["X"][a2]), ("ring_start", T["ring_start"]),
+                     ("ring", T["ring"])], [("g_out", T["g"])], [("n", self.s.n_slots)])
+        self.g, self.g_axis, self.sums = object(), axis, {}
+        return self.g
+
+    def _check(self, g):
+        if g is not self.g:
+            raise GPUUnavailable("a gradient that is no longer on the GPU was asked for")
+
+    def _slot_sums(self, axis, g):
+        """(sum x0_axis * g, sum |s g|) over the slots, by the reduce kernel's partial sums."""
+        self._check(g)
+        if axis not in self.sums:
+            T = self.s.tex
+            groups = self.s._run("reduce_slots", self.s.n_slots,
+                                 [("x0", T["x0"]), ("g", T["g"]), ("s", T["s"])],
+                                 [("partial", T["partial_slots"])], [("n", self.s.n_slots), ("comp", axis)])
+            sums = read_texture(T["partial_slots"], groups, 4)[:, :2].astype(np.float64).sum(0)
+            self.sums[axis] = sums
+        return self.sums[axis]
+
+    def x0_dot(self, axis, g, rows, k=1):
+        return np.array([self._slot_sums(axis, g)[0]])
+
+    def flux(self, g, rows, k=1):
+        return np.array([self._slot_sums(self.g_axis, g)[1]])
+
+    def transpose(self, g, rows, k=1):
+        self._check(g)
+        T = self.s.tex
+        self.s._run("pieces", self.s.n_pieces, [("wuv", T["wuv"]), ("ww", T["ww"]), ("g", T["g"])],
+                    [("piece", T["piece"])], [("n", self.s.n_pieces)])
+        self.s._run("alpha", self.s.N, [("cp_start", T["cp_start"]), ("cp_piece", T["cp_piece"]),
+                                        ("piece", T["piece"])], [("alpha_out", T["alpha"])], [("n", self.s.N)])
+        return read_texture(T["alpha"], self.s.N, 1)[:, 0].astype(np.float64)[None]
+
+    def verts(self, D):
+        self.refresh((0, 1, 2), D)
+        T = self.s.tex
+        self.s._run("gather", self.s.V, [("slot", T["slot"]), ("x_0", T["X"][0]), ("x_1", T["X"][1]),
+                                         ("x_2", T["X"][2])], [("verts_out", T["verts"])], [("n", self.s.V)])
+        return read_texture(T["verts"], self.s.V, 4)[:, :3].astype(np.float64) + self.s.origins
+
+    def finite(self):
+        return True       # the coordinates are checked where they come back (`verts`)
+
+    def direction_gradient(self, p, q, D):
+        raise ValueError("the GPU path corrects along lattice axes only")
+
+    def x_dot(self, e, axis, g, rows, k=1, D=None):
+        """sum X_axis * g: the reduce kernel run on the X texture instead of x0's."""
+        if axis is None:
+            raise ValueError("the GPU path corrects along lattice axes only")
+        self._check(g)
+        self.refresh((axis,), D)
+        T = self.s.tex
+        groups = self.s._run("reduce_slots", self.s.n_slots,
+                             [("x0", T["X"][axis]), ("g", T["g"]), ("s", T["s"])],
+                             [("partial", T["partial_slots"])], [("n", self.s.n_slots), ("comp", 0)])
+        return np.array([read_texture(T["partial_slots"], groups, 4)[:, 0].astype(np.float64).sum()])
+
+    def add_along(self, e, t):
+        raise ValueError("the GPU path corrects along lattice axes only")

@@ -109,8 +109,8 @@ def test_supports_and_choose():
     mod = _load()
     assert mod.supports(dict(axes="XYZ"))[0]
     assert mod.supports(dict(axes="zx"))[0]
-    for opts in (dict(axes="XYZ", pins=[(0, (0, 0, 0))]), dict(axes="XYZ", islands=True),
-                 dict(axes="XYZ", mobility=np.ones(8)), dict(directions=np.eye(3)), dict(axes=""),
+    assert mod.supports(dict(axes="XYZ", pins=[(0, (0, 0, 0))], mobility=np.ones(8)))[0]
+    for opts in (dict(axes="XYZ", islands=True), dict(directions=np.eye(3)), dict(axes=""),
                  dict(axes="XYZ", preserve_volume=False)):
         ok, why = mod.supports(opts)
         assert not ok and why
@@ -204,6 +204,23 @@ def test_gpu_matches_cpu(gb, name):
             assert np.abs(gpu.points - cpu.points).max() <= 1e-5 * lat.size, what
             assert gpu.warnings == cpu.warnings, what
             np.testing.assert_array_equal(gpu.directions, cpu.directions)
+
+
+def test_gpu_matches_cpu_with_pins_and_mobility(gb):
+    """Pins and mobility go through the one solve driver on either path: the GPU supplies only
+    the per-slot sums and products, so its result is the CPU's to float32 rounding."""
+    lat, v, f, influence, P = _case("icosphere-bspline")
+    b = vp.bind(lat, v, f, influence=influence, dtype=np.float32)
+    rng = np.random.default_rng(3)
+    mobility = rng.uniform(0.2, 1.0, lat.n_points)
+    pins = [(0, v[0] + (0.0, 0.0, 0.02)), (len(v) // 2, v[len(v) // 2] - (0.01, 0.0, 0.0))]
+    for options in (dict(axes="XYZ", mobility=mobility), dict(axes="XY", pins=pins),
+                    dict(axes="XYZ", pins=pins, mobility=mobility, volume_scale=0.95)):
+        cpu = b.solve(P, **options)
+        gpu = gb.GPUSolver(b).solve(P, **options)
+        assert np.abs(gpu.verts - cpu.verts).max() <= 1e-5 * lat.size, options
+        assert abs(gpu.volume / cpu.target_volume - 1) <= 1e-5, options
+        assert gpu.warnings == cpu.warnings, options
 
 
 def test_untouched_points_come_back_bit_identical(gb):

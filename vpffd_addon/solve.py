@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import tolerances as tol
+from .steps import CAPABILITIES, NumpySteps
 from .volume import face_volumes
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
@@ -114,14 +115,12 @@ class _State:
     ``V = x0_a . g + D_a . alpha`` (homogeneity), so no forward product is spent on it.
     """
 
-    def __init__(self, b, points, mobility, pins, islands, targets):
+    def __init__(self, b, points, mobility, pins, islands, targets, steps=None):
         self.b = b
         # P is updated alongside D so that points with zero offset come back bit-identical.
         self.P = np.array(points, dtype=np.float64)
         self.D = self.P - b.lattice.rest_points
-        self.X = b.x0.copy()
-        self.fresh = [False, False, False]
-        self.corners = {}                           # component -> X[c] at the face corners
+        self.k = (steps or NumpySteps)(b)           # the per-slot work (CPU, or GPU kernels)
         self.mob = mobility
         self.pin_slots, self.pin_targets, self.pin_index = pins
         self.pin_rows = b._rows(self.pin_slots) if len(self.pin_slots) else None
@@ -134,55 +133,32 @@ class _State:
         self.skipped = []                            # steps refused as absurd, in words
         self.plain = None                            # (k,) volumes of the plain deformation
         self.mirrored = False                        # whether some target's sign was turned
-        f32 = b.dtype == np.float32
+        f32 = self.k.float32
         self.degenerate = tol.DEGENERATE_REL_F32 if f32 else tol.DEGENERATE_REL_F64
         self.met_rel = tol.MET_REL_F32 if f32 else tol.MET_REL_F64
         rest = b.rest_island_volumes if islands else np.array([b.rest_volume])
         scale = np.maximum(np.abs(targets), np.abs(rest))
         self.vol_scale = np.maximum(scale, np.abs(b.rest_volume) * 1e-6 + 1e-300)
 
-    def ensure(self, *components):
-        """Bring X's components up to date with D (stale ones in one pass)."""
-        stale = [c for c in components if not self.fresh[c]]
-        if not stale:
-            return
-        fields = self.b._forward_many(self.D[:, stale].T)
-        for c, field in zip(stale, fields):
-            self.X[c] = self.b.x0[c] + field
-            self.fresh[c] = True
-            self.corners.pop(c, None)
-
-    def corner_coords(self, c):
-        """Component c of X gathered at the face corners; reused until c changes."""
-        if c not in self.corners:
-            self.corners[c] = self.b._gather(self.X[c])
-        return self.corners[c]
-
-    def _split(self, values):
-        """Sum per-slot values (n_slots,) per volume row: (k,)."""
-        if self.islands:
-            return np.bincount(self.slot_island, values, len(self.targets))
-        return np.array([values.sum()])
+    @property
+    def _rows(self):
+        """(rows, k) for the steps' per-row sums: None for one volume row, else the islands."""
+        return (self.slot_island, len(self.targets)) if self.islands else (None, 1)
 
     def gradient(self, e):
-        """(axis, g, base) for unit direction e: g (n_slots,) the e-gradient at the current
-        vertices and, for an axis, base (k,) = x0_a . g per row, so V = base + D_a . alpha."""
+        """(axis, g, base) for unit direction e: g the e-gradient at the current vertices (a
+        handle of the steps) and, for an axis, base (k,) = x0_a . g per row, so
+        V = base + D_a . alpha."""
         axis, p, q = _frame(e)
         if axis is not None:
-            a1, a2 = (axis + 1) % 3, (axis + 2) % 3
-            self.ensure(a1, a2)
-            g = self.b._gradient_of(self.X[a1], self.X[a2])
-            return axis, g, self._split(self.b.x0[axis] * g)
-        self.ensure(0, 1, 2)
-        return None, self.b._gradient(self.b._gather(p @ self.X), self.b._gather(q @ self.X)), None
+            g = self.k.axis_gradient(axis, self.D)
+            return axis, g, self.k.x0_dot(axis, g, *self._rows)
+        return None, self.k.direction_gradient(p, q, self.D), None
 
     def measure(self, e, axis, g, base, alpha):
         """(k,) current volumes from the e-gradient g (V is homogeneous of degree one along e)."""
-        if axis is None:
-            return self._split((e @ self.X) * g)
-        if alpha is None:
-            self.ensure(axis)
-            return self._split(self.X[axis] * g)
+        if axis is None or alpha is None:
+            return self.k.x_dot(e, axis, g, *self._rows, D=self.D)
         return base + alpha @ self.D[:, axis]
 
     def volume_met(self):
@@ -190,9 +166,7 @@ class _State:
 
     def alpha_rows(self, g):
         """(k, N) volume coefficients (S B)^T g, one row per volume row (island)."""
-        if not self.islands:
-            return self.b._transpose(g)[None]
-        return self.b._island_transpose(g, len(self.targets))
+        return self.k.transpose(g, *self._rows)
 
     def step(self, e, divisor, preserve_volume):
         """One closed-form correction along unit direction e; the volume rows ask for 1/divisor of
@@ -215,7 +189,7 @@ class _State:
         if preserve_volume:
             # A row is degenerate when its coefficients are negligible next to the total volume
             # flux sum |s_v g_v| along e (e.g. a pure translation, or every point immobile).
-            flux = self._split(np.abs(g * b.slot_influence))
+            flux = self.k.flux(g, *self._rows)
             weighted = alpha if self.mob is None else alpha * np.sqrt(self.mob)
             movable = np.linalg.norm(weighted, axis=1) > self.degenerate * flux
             volume_rows = np.flatnonzero(movable)
@@ -261,12 +235,11 @@ class _State:
         if axis is not None:
             self.D[:, axis] += t
             self.P[:, axis] += t
-            self.fresh[axis] = False
+            self.k.stale(axis)
         else:
-            self.X += (e[:, None] * self.b._forward(t)).astype(self.X.dtype)
+            self.k.add_along(e, t)
             self.D += t[:, None] * e
             self.P += t[:, None] * e
-            self.corners.clear()
 
     def joint(self, dirs, preserve_volume):
         """One Gauss-Newton step over all directions at once: the volume rows (one per island)
@@ -330,7 +303,7 @@ def _volumes(b, verts, islands):
 
 
 def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
-          mobility=None, pins=(), islands=False):
+          mobility=None, pins=(), islands=False, steps=None):
     """Volume-preserving FFD of `binding` for control points `points` (N, 3).
 
     axes: correction directions as a string of distinct letters from "XYZ" (lattice axes), applied
@@ -341,6 +314,8 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     pins: (vertex index, (x, y, z) target) pairs; each pinned vertex lands on its target along the
         correction directions (Problem 2, eq. 21, any number of pins).
     islands: keep the volume of each connected component separately.
+    steps: a callable ``steps(binding)`` giving the per-slot work (`steps.NumpySteps`, the default,
+        or the GPU's); options it cannot do raise ValueError before anything is computed.
     Returns a `Solution`. Raises ValueError for bad input, or when the volume must change but cannot
     along any direction; never returns NaN.
     """
@@ -356,10 +331,16 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     if len(dirs) == 0 and (preserve_volume or len(pin_slots)):
         raise ValueError("no correction directions: give axes (e.g. 'XYZ') or directions")
 
+    caps = getattr(steps, "capabilities", CAPABILITIES)
+    needs = {"directions": any(np.count_nonzero(e) != 1 for e in dirs), "islands": bool(islands),
+             "plain_measure": not preserve_volume or not len(dirs)}
+    missing = [what for what, needed in needs.items() if needed and what not in caps]
+    if missing:
+        raise ValueError(f"these solve steps cannot do {', '.join(missing)}")
     targets = scale * (b.rest_island_volumes if islands else np.array([b.rest_volume]))
     if not np.isfinite(targets).all():
         raise ValueError(f"volume_scale {volume_scale!r} makes the target volume overflow")
-    st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets)
+    st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets, steps)
 
     m = len(dirs)
     if m:
@@ -428,20 +409,19 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         warnings = [f"the correction was refused: it would move lattice points by "
                     f"{reach / b.lattice.diagonal:.3g} times the lattice's diagonal (the lattice is "
                     "flat or folded along the correction directions); the plain deformation is shown"]
-        st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets)
-        st.ensure(0, 1, 2)
+        st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets, steps)
         # Measured again in float64 from the positions: a lattice this distorted makes the
         # gradient's float32 terms cancel far beyond what the shape's own rounding allows.
-        st.volumes = _volumes(b, b._to_verts(st.X), bool(islands))
+        st.volumes = _volumes(b, st.k.verts(st.D), bool(islands))
         plain = st.volumes
-    st.ensure(0, 1, 2)
-    if not (np.isfinite(st.X).all() and np.isfinite(st.P).all() and np.isfinite(st.volumes).all()
-            and np.isfinite(plain).all()):
+    verts = st.k.verts(st.D)
+    if not (st.k.finite() and np.isfinite(verts).all() and np.isfinite(st.P).all()
+            and np.isfinite(st.volumes).all() and np.isfinite(plain).all()):
         raise ValueError(_OVERFLOW)
 
     total = float(st.volumes.sum())
     return Solution(
-        verts=b._to_verts(st.X), points=st.P, volume=total, target_volume=float(targets.sum()),
+        verts=verts, points=st.P, volume=total, target_volume=float(targets.sum()),
         plain_volume=float(plain.sum()), directions=dirs,
         island_volumes=st.volumes.copy() if islands else None,
         island_target_volumes=targets if islands else None,

@@ -194,14 +194,15 @@ def test_gpu_matches_cpu(gb, name):
             what = f"{name} {axes} scale {scale}"
             assert gpu.verts.shape == (len(v), 3) and gpu.verts.dtype == np.float64
             err = np.abs(gpu.verts - cpu.verts).max() / lat.size
-            assert err <= 1e-5, f"{what}: coordinates differ by {err:.3g} of the lattice size"
+            # Float32 rounding of the per-slot sums only: measured up to 6e-8 of the lattice size.
+            assert err <= 5e-7, f"{what}: coordinates differ by {err:.3g} of the lattice size"
             target = cpu.target_volume
             assert gpu.target_volume == pytest.approx(target, rel=1e-12)
             vol = vp.signed_volume(gpu.verts, f, origin=lat.centre)
             assert abs(vol - target) <= 1e-5 * abs(target), f"{what}: volume {vol} vs {target}"
             assert abs(gpu.volume - target) <= 1e-5 * abs(target), what
             assert abs(gpu.plain_volume - cpu.plain_volume) <= 1e-5 * abs(target), what
-            assert np.abs(gpu.points - cpu.points).max() <= 1e-5 * lat.size, what
+            assert np.abs(gpu.points - cpu.points).max() <= 5e-7 * lat.size, what
             assert gpu.warnings == cpu.warnings, what
             np.testing.assert_array_equal(gpu.directions, cpu.directions)
 
@@ -218,7 +219,7 @@ def test_gpu_matches_cpu_with_pins_and_mobility(gb):
                     dict(axes="XYZ", pins=pins, mobility=mobility, volume_scale=0.95)):
         cpu = b.solve(P, **options)
         gpu = gb.GPUSolver(b).solve(P, **options)
-        assert np.abs(gpu.verts - cpu.verts).max() <= 1e-5 * lat.size, options
+        assert np.abs(gpu.verts - cpu.verts).max() <= 5e-7 * lat.size, options
         assert abs(gpu.volume / cpu.target_volume - 1) <= 1e-5, options
         assert gpu.warnings == cpu.warnings, options
 

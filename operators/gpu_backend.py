@@ -36,9 +36,11 @@ import numpy as np
 
 try:
     from ..vpffd_addon import solve as _vsolve
+    from ..vpffd_addon import steps as _vsteps
     from ..vpffd_addon.gpu_layout import gpu_layout
 except ImportError:  # loaded outside the extension package (tests, benchmarks)
     from vpffd_addon import solve as _vsolve
+    from vpffd_addon import steps as _vsteps
     from vpffd_addon.gpu_layout import gpu_layout
 
 #: Texture width (texels); indices map to (i % TW, i // TW).
@@ -488,7 +490,7 @@ class _StepsOf:
         return self.solver.steps(binding)
 
 
-class _GPUSteps:
+class _GPUSteps(_vsteps.Steps):
     """`vpffd_addon.steps.NumpySteps`'s interface on the GPU: X lives in textures, a gradient is
     the texture `g` (its handle a token), sums come back as a few hundred partial sums whose last
     level runs in float64 here, and the transposed product comes back as N floats. No directions
@@ -498,8 +500,8 @@ class _GPUSteps:
     float32 = True
 
     def __init__(self, solver):
+        super().__init__()
         self.s = solver
-        self.fresh = [False, False, False]
         self.uploaded = None          # the D now in the `disp` texture
         self.g = None                 # token of the gradient now in the `g` texture
         self.g_axis = None
@@ -510,30 +512,21 @@ class _GPUSteps:
             self.s.disp = make_texture(_pad_to_vec4(np.asarray(D, np.float32)), 4)
             self.uploaded = np.array(D, copy=True)
 
-    def refresh(self, components, D):
-        stale = [c for c in components if not self.fresh[c]]
-        if not stale:
-            return
+    def _forward(self, components, D):
         self._upload(D)
         T = self.s.tex
-        for c in stale:
+        for c in components:
             self.s._run("forward", self.s.n_slots,
                         [("x0", T["x0"]), ("wuv", T["wuv"]), ("ww", T["ww"]), ("block_run", T["block_run"]),
                          ("run_idx", T["run_idx"]), ("disp", self.s.disp)],
                         [("x_out", T["X"][c])], [("n", self.s.n_slots), ("comp", c)])
-            self.fresh[c] = True
 
-    def stale(self, axis):
-        self.fresh[axis] = False
-
-    def axis_gradient(self, axis, D):
-        a1, a2 = (axis + 1) % 3, (axis + 2) % 3
-        self.refresh((a1, a2), D)
+    def _gradient(self, a1, a2):
         T = self.s.tex
         self.s._run("gradient", self.s.n_slots,
                     [("xp", T["X"][a1]), ("xq", T["X"][a2]), ("ring_start", T["ring_start"]),
                      ("ring", T["ring"])], [("g_out", T["g"])], [("n", self.s.n_slots)])
-        self.g, self.g_axis, self.sums = object(), axis, {}
+        self.g, self.g_axis, self.sums = object(), 3 - a1 - a2, {}
         return self.g
 
     def _check(self, g):

@@ -161,6 +161,15 @@ def lattice_modifier_reference(verts, tris, shape, interpolation, deformed_point
     }
 
 
+def bind(ob, **settings):
+    """Set `ob.vpffd`'s `settings` and press Bind with `ob` active and selected, as a user does;
+    the operator's result."""
+    for k, v in settings.items():
+        setattr(ob.vpffd, k, v)
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        return bpy.ops.object.vpffd_bind()
+
+
 def evaluated_world(ob):
     """(world coords (V, 3) float64 of the float32 evaluated mesh of `ob`, tris (F, 3)): the demos'
     own measurement, on the context's depsgraph."""

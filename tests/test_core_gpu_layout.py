@@ -1,13 +1,42 @@
-"""The GPU path's data layout, built in the core and checked here without Blender: the one-ring
-gather gives the binding's volume gradient and the per-control-point sums of pieces give its
-transposed product, on meshes with several islands and blocks."""
+"""The GPU path's data layout, built in the core and checked here without Blender: what its
+kernels compute from it, written out in NumPy below, is the binding's own volume gradient (the
+one-ring gather) and transposed product (the per-control-point sums of pieces), on meshes with
+several islands and blocks."""
 import numpy as np
 import pytest
 
 import vpffd_addon as vp
-from vpffd_addon.gpu_layout import gpu_layout, gradient_by_ring, transpose_by_pieces
+from vpffd_addon.gpu_layout import gpu_layout
 
 pytestmark = pytest.mark.core
+
+
+# What the GPU's kernels compute from the layout, written out in NumPy.
+
+def gradient_by_ring(layout, xp, xq):
+    """The gradient the GPU's one-ring gather computes, in NumPy: (n_slots,) from the slot
+    coordinates xp, xq (n_slots,) on the two axes that complete the gradient's axis."""
+    ring, start = layout["ring"], layout["ring_start"]
+    m, n = ring[:, 0], ring[:, 1]
+    terms = xp[m] * xq[n] - xq[m] * xp[n]
+    sums = np.add.reduceat(np.r_[terms, 0.0], np.minimum(start[:-1], len(terms)))
+    sums[start[:-1] == start[1:]] = 0.0
+    return sums / 6.0
+
+
+def transpose_by_pieces(layout, g, kw, kuv, block_size):
+    """The transposed product the GPU's pieces and alpha kernels compute, in NumPy: (N,)."""
+    n_slots = len(layout["s"])
+    n_blocks = n_slots // block_size
+    wuv = layout["wuv"].reshape(n_blocks, block_size, kuv)
+    ww = layout["ww"].reshape(n_blocks, block_size, kw)
+    gb = np.asarray(g, np.float64).reshape(n_blocks, block_size)
+    pieces = np.einsum("bsw,bsk,bs->bwk", ww, wuv, gb).reshape(-1)
+    order, start = layout["cp_piece"], layout["cp_start"]
+    ordered = pieces[order]
+    sums = np.add.reduceat(np.r_[ordered, 0.0], np.minimum(start[:-1], len(ordered)))
+    sums[start[:-1] == start[1:]] = 0.0
+    return sums
 
 
 @pytest.mark.parametrize("shape", [(4, 4, 4), (3, 5, 2)])

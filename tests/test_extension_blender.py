@@ -12,7 +12,7 @@ bpy = pytest.importorskip("bpy")
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
 from . import extension_harness as eh
-from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+from .blender_ref import bind as _bind, evaluated_volume, evaluated_world, triangle_mesh
 
 pytestmark = pytest.mark.blender
 
@@ -89,13 +89,6 @@ def _plain_copy(ob, lat_ob, name="Plain"):
     mod = cp.modifiers.new("Lattice", "LATTICE")
     mod.object = lat_ob
     return cp, mod
-
-
-def _bind(ob, **settings):
-    for k, v in settings.items():
-        setattr(ob.vpffd, k, v)
-    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
-        return bpy.ops.object.vpffd_bind()
 
 
 @pytest.fixture

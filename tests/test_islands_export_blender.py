@@ -15,29 +15,13 @@ bpy = pytest.importorskip("bpy")
 
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
-from . import extension_harness as eh
-from .blender_ref import evaluated_world, squash_lattice, triangle_mesh
+from .blender_ref import bind as _bind, evaluated_world, squash_lattice, triangle_mesh
 
 pytestmark = pytest.mark.blender
 
 VOLUME_TOL = 1e-5
 #: Blender 4.4+ lets VP-FFD read a tap that exporters do not see (operators/modifier.py).
 CLEAN_EXPORTS = hasattr(bpy.types.Object, "evaluated_geometry")
-
-
-@pytest.fixture
-def ext(vpffd):
-    eh.reset_scene()
-    bpy.context.scene.frame_set(1)
-    yield vpffd
-    eh.reset_scene()
-
-
-def _bind(ob, **settings):
-    for k, v in settings.items():
-        setattr(ob.vpffd, k, v)
-    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
-        return bpy.ops.object.vpffd_bind()
 
 
 def _volumes(co, tris, labels, n):

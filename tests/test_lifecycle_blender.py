@@ -14,18 +14,9 @@ bpy = pytest.importorskip("bpy")
 
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
-from . import extension_harness as eh
-from .blender_ref import evaluated_volume, evaluated_world, triangle_mesh
+from .blender_ref import bind as _bind, evaluated_volume, evaluated_world, triangle_mesh
 
 pytestmark = pytest.mark.blender
-
-
-@pytest.fixture
-def ext(vpffd):
-    eh.reset_scene()
-    bpy.context.scene.frame_set(1)
-    yield vpffd
-    eh.reset_scene()
 
 
 def _engine(ext):
@@ -51,13 +42,6 @@ def _lattice(name="Lattice"):
     co[:, 2] *= 0.5
     lt.points.foreach_set("co_deform", co.ravel())
     return ob
-
-
-def _bind(ob, **settings):
-    for k, v in settings.items():
-        setattr(ob.vpffd, k, v)
-    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
-        return bpy.ops.object.vpffd_bind()
 
 
 def _coords(ob):

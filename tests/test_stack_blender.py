@@ -18,8 +18,8 @@ bpy = pytest.importorskip("bpy")
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
 from . import extension_harness as eh
-from .blender_ref import (bone_weights_by_height, evaluated_volume, evaluated_world,
-                          squash_lattice, triangle_mesh, two_bone_armature)
+from .blender_ref import (bind as _bind, bone_weights_by_height, evaluated_volume,
+                          evaluated_world, squash_lattice, triangle_mesh, two_bone_armature)
 
 pytestmark = pytest.mark.blender
 
@@ -27,14 +27,6 @@ FRAMES = (1, 7, 14, 20)
 SHAPE_TOL = 1e-5      # of the object's size
 VOLUME_TOL = 1e-5     # relative
 PANEL_TOL = 1e-6      # relative, panel figure against the measured ratio
-
-
-@pytest.fixture
-def ext(vpffd):
-    eh.reset_scene()
-    bpy.context.scene.frame_set(1)
-    yield vpffd
-    eh.reset_scene()
 
 
 def _engine(ext):
@@ -124,13 +116,6 @@ def _after(ob, kind):
 
 
 KINDS = ("armature", "shape_keys", "subsurf_before", "simple_deform", "lattice_before", "subsurf_after")
-
-
-def _bind(ob, **settings):
-    for k, v in settings.items():
-        setattr(ob.vpffd, k, v)
-    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
-        return bpy.ops.object.vpffd_bind()
 
 
 def _vpffd_object(kind, lattice, **settings):

@@ -40,29 +40,3 @@ def gpu_layout(b):
         "block_run": b.block_run, "run_idx": b.run_idx.reshape(-1), "slot": b.slot,
         "ring_start": ring_start, "ring": others[order], "cp_start": cp_start, "cp_piece": cp_order,
     }
-
-
-def gradient_by_ring(layout, xp, xq):
-    """The gradient the GPU's one-ring gather computes, in NumPy: (n_slots,) from the slot
-    coordinates xp, xq (n_slots,) on the two axes that complete the gradient's axis."""
-    ring, start = layout["ring"], layout["ring_start"]
-    m, n = ring[:, 0], ring[:, 1]
-    terms = xp[m] * xq[n] - xq[m] * xp[n]
-    sums = np.add.reduceat(np.r_[terms, 0.0], np.minimum(start[:-1], len(terms)))
-    sums[start[:-1] == start[1:]] = 0.0
-    return sums / 6.0
-
-
-def transpose_by_pieces(layout, g, kw, kuv, block_size):
-    """The transposed product the GPU's pieces and alpha kernels compute, in NumPy: (N,)."""
-    n_slots = len(layout["s"])
-    n_blocks = n_slots // block_size
-    wuv = layout["wuv"].reshape(n_blocks, block_size, kuv)
-    ww = layout["ww"].reshape(n_blocks, block_size, kw)
-    gb = np.asarray(g, np.float64).reshape(n_blocks, block_size)
-    pieces = np.einsum("bsw,bsk,bs->bwk", ww, wuv, gb).reshape(-1)
-    order, start = layout["cp_piece"], layout["cp_start"]
-    ordered = pieces[order]
-    sums = np.add.reduceat(np.r_[ordered, 0.0], np.minimum(start[:-1], len(ordered)))
-    sums[start[:-1] == start[1:]] = 0.0
-    return sums

@@ -18,7 +18,8 @@ into what the closed forms need (docs/design.md, "The closed form"):
 - `verts(D)`: the deformed vertices (V, 3) float64 in lattice space; `finite()`.
 
 `rows` is None for one volume row, else the (n_slots,) volume row of every slot. `float32`: the
-precision the steps compute in (tolerances follow it).
+precision the steps compute in (tolerances follow it). `Steps` keeps the bookkeeping both kinds
+share (which components are fresh); a kind supplies the computations.
 """
 import numpy as np
 
@@ -26,25 +27,20 @@ import numpy as np
 CAPABILITIES = frozenset({"directions", "islands", "plain_measure"})
 
 
-class NumpySteps:
-    """The steps on the CPU, for a `Binding` or a `CageBinding`."""
+class Steps:
+    """What every kind of steps shares: which components of X are up to date with D, and the
+    axis gradient from the two components that complete the axis. A kind supplies
+    `_forward(components, D)` (those components of X, recomputed) and `_gradient(a1, a2)`."""
 
-    capabilities = CAPABILITIES
-
-    def __init__(self, binding):
-        self.b = binding
-        self.float32 = binding.dtype == np.float32
-        self.X = binding.x0.copy()
+    def __init__(self):
         self.fresh = [False, False, False]
 
     def refresh(self, components, D):
         stale = [c for c in components if not self.fresh[c]]
-        if not stale:
-            return
-        fields = self.b._forward_many(D[:, stale].T)
-        for c, field in zip(stale, fields):
-            self.X[c] = self.b.x0[c] + field
-            self.fresh[c] = True
+        if stale:
+            self._forward(stale, D)
+            for c in stale:
+                self.fresh[c] = True
 
     def stale(self, axis):
         self.fresh[axis] = False
@@ -52,6 +48,25 @@ class NumpySteps:
     def axis_gradient(self, axis, D):
         a1, a2 = (axis + 1) % 3, (axis + 2) % 3
         self.refresh((a1, a2), D)
+        return self._gradient(a1, a2)
+
+
+class NumpySteps(Steps):
+    """The steps on the CPU, for a `Binding` or a `CageBinding`."""
+
+    capabilities = CAPABILITIES
+
+    def __init__(self, binding):
+        super().__init__()
+        self.b = binding
+        self.float32 = binding.dtype == np.float32
+        self.X = binding.x0.copy()
+
+    def _forward(self, components, D):
+        for c, field in zip(components, self.b._forward_many(D[:, components].T)):
+            self.X[c] = self.b.x0[c] + field
+
+    def _gradient(self, a1, a2):
         return self.b._gradient_of(self.X[a1], self.X[a2])
 
     def direction_gradient(self, p, q, D):

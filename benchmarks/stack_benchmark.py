@@ -6,7 +6,8 @@ slot, same process, for the ways things move in a shot.
 An icosphere of 163,842 vertices in a 6x6x6 B-spline lattice; VP-FFD corrects along XYZ. For each
 scenario two scenes are built (VP-FFD in the slot; a Lattice modifier in the slot), each stepped
 through FRAME_WARMUPS untimed frames and then FRAMES timed ones; the figure is the median frame
-time with its spread (min and max), and the ratio of the medians:
+time with its spread (min and max), and the ratio of the medians; ROUNDS rounds of every scenario,
+the one with the median ratio shown:
 - `lattice points`: a shape key of the lattice animates, nothing else moves;
 - `mesh moves`: the mesh object travels through the static lattice (it is re-embedded every frame);
 - `lattice moves`: the lattice object travels over the static mesh;
@@ -14,6 +15,9 @@ time with its spread (min and max), and the ratio of the medians:
   the bending bone; compared with Armature + Lattice modifier. VP-FFD makes Blender evaluate the
   object's stack twice per frame (once to read what reaches the slot, once with the offsets), so
   the Armature-only frame time is printed too: it is what that second evaluation costs upstream.
+Each VP-FFD frame is also split at the frame-change handlers: Blender's evaluation before them
+(what reaches the slot; nothing to evaluate when only the mesh object's transform changed), the
+handlers (VP-FFD's update), and the evaluation that the update's offsets cause.
 And the mesh moving through a 20-cell box cage (depth 3), whose binding is rebuilt every frame.
 Also: `vp.bind` at 163,842 and 655,362 vertices, the Bind operator, and the first frame after an
 undo against an ordinary frame. A benchmark, not a test: it prints figures and exits 0.
@@ -35,6 +39,10 @@ SUBDIVISIONS = 7          # 163,842 vertices
 LATTICE = (6, 6, 6)
 FRAMES = 12
 FRAME_WARMUPS = 3
+#: Every scenario is measured in this many rounds (each: Lattice-modifier scene, then VP-FFD's);
+#: the row shown is the round with the median ratio, beside every round's ratio, since frame times
+#: on shared machines drift by tens of percent within minutes.
+ROUNDS = 3
 SCENARIOS = ("lattice points", "mesh moves", "lattice moves", "armature")
 CAGE_FRAMES = 4
 
@@ -97,22 +105,63 @@ def _scene(bpy, eh, scenario, slot, verts, tris):
     return ob
 
 
+class _Phases:
+    """Clocks around the frame-change handlers: `frame_set` -> frame_change_pre (last) ->
+    Blender's first evaluation -> frame_change_post (first ... last: VP-FFD's update among them) ->
+    the evaluation that its writes cause -> `frame_set` returns. Times in ms per frame."""
+
+    def __init__(self, bpy):
+        self.h = bpy.app.handlers
+        self.t = {}
+        self.rows = []
+
+    def _at(self, name):
+        def mark(*_args):
+            self.t[name] = time.perf_counter()
+        return mark
+
+    def __enter__(self):
+        self.marks = (self._at("pre"), self._at("post0"), self._at("post1"))
+        self.h.frame_change_pre.append(self.marks[0])
+        self.h.frame_change_post.insert(0, self.marks[1])
+        self.h.frame_change_post.append(self.marks[2])
+        return self
+
+    def __exit__(self, *exc):
+        self.h.frame_change_pre.remove(self.marks[0])
+        self.h.frame_change_post.remove(self.marks[1])
+        self.h.frame_change_post.remove(self.marks[2])
+
+    def frame(self, start, end):
+        t = self.t
+        self.rows.append((1e3 * (t["post0"] - start), 1e3 * (t["post1"] - t["post0"]),
+                          1e3 * (end - t["post1"])))
+
+    def medians(self):
+        cols = list(zip(*self.rows))
+        return {k: statistics.median(c) for k, c in zip(("first_evaluation", "handlers", "after_update"), cols)}
+
+
 def _frames(bpy, engine=None, ob=None):
+    """(wall ms per frame, VP-FFD update ms per frame, phase medians) over the timed frames."""
     scene = bpy.context.scene
     scene.frame_set(1)
     for f in range(2, FRAME_WARMUPS + 2):
         scene.frame_set(f)
     wall, update = [], []
-    for f in range(FRAME_WARMUPS + 2, FRAME_WARMUPS + FRAMES + 2):
-        t0 = time.perf_counter()
-        scene.frame_set(f)
-        wall.append((time.perf_counter() - t0) * 1e3)
-        if engine is not None:
-            info = engine.stats(ob)
-            if info.get("error"):
-                raise RuntimeError(info["error"])
-            update.append(info["seconds"] * 1e3)
-    return wall, update
+    with _Phases(bpy) as phases:
+        for f in range(FRAME_WARMUPS + 2, FRAME_WARMUPS + FRAMES + 2):
+            t0 = time.perf_counter()
+            scene.frame_set(f)
+            t1 = time.perf_counter()
+            wall.append((t1 - t0) * 1e3)
+            phases.frame(t0, t1)
+            if engine is not None:
+                info = engine.stats(ob)
+                if info.get("error"):
+                    raise RuntimeError(info["error"])
+                update.append(info["seconds"] * 1e3)
+    return wall, update, phases.medians()
 
 
 def cage_figures(bpy, eh, engine, cage_module, verts, tris):
@@ -158,9 +207,10 @@ def frame_set_figures(bpy, eh, engine, verts, tris):
         ob = _scene(bpy, eh, scenario, "lattice", verts, tris)
         row["lattice_modifier_ms"] = _spread(_frames(bpy)[0])
         ob = _scene(bpy, eh, scenario, "vpffd", verts, tris)
-        wall, update = _frames(bpy, engine, ob)
+        wall, update, phases = _frames(bpy, engine, ob)
         row["vpffd_ms"] = _spread(wall)
         row["vpffd_update_ms"] = _spread(update)
+        row["vpffd_phases_ms"] = phases
         row["volume_percent"] = engine.stats(ob)["volume_percent"]
         if scenario == "armature":
             _scene(bpy, eh, scenario, "none", verts, tris)
@@ -168,6 +218,17 @@ def frame_set_figures(bpy, eh, engine, verts, tris):
         row["ratio"] = row["vpffd_ms"]["median"] / row["lattice_modifier_ms"]["median"]
         log(f"  {scenario}: VP-FFD {row['vpffd_ms']['median']:.1f} ms, Lattice modifier "
             f"{row['lattice_modifier_ms']['median']:.1f} ms, ratio {row['ratio']:.2f}")
+        rows.append(row)
+    return rows
+
+
+def median_rounds(rounds):
+    """Per scenario, the row of the round whose ratio is the median, with every round's ratio."""
+    rows = []
+    for per_round in zip(*rounds):
+        ranked = sorted(per_round, key=lambda r: r["ratio"])
+        row = dict(ranked[len(ranked) // 2])
+        row["ratios"] = [r["ratio"] for r in per_round]
         rows.append(row)
     return rows
 
@@ -261,7 +322,9 @@ def run(engine_module_loader):
     log(f"stack benchmark: {len(verts):,} vertices, {LATTICE} B-spline lattice, XYZ, "
         f"{FRAMES} frames after {FRAME_WARMUPS} warm-up frames")
     report = {"vertices": len(verts), "lattice": list(LATTICE), "frames": FRAMES,
-              "warmups": FRAME_WARMUPS, "frame_set": frame_set_figures(bpy, eh, engine, verts, tris),
+              "warmups": FRAME_WARMUPS, "rounds": ROUNDS,
+              "frame_set": median_rounds([frame_set_figures(bpy, eh, engine, verts, tris)
+                                          for _ in range(ROUNDS)]),
               "cage": cage_figures(bpy, eh, engine, cage_module, verts, tris),
               "bind": bind_figures(bpy, eh, engine, handlers),
               "islands": island_figures()}
@@ -269,22 +332,37 @@ def run(engine_module_loader):
     return report
 
 
+def _rounds(row):
+    ratios = row.get("ratios")
+    if not ratios or len(ratios) < 2:
+        return ""
+    return " (rounds: " + ", ".join(f"{x:.2f}" for x in ratios) + ")"
+
+
+def _phase_cell(row):
+    ph = row.get("vpffd_phases_ms")
+    if not ph:
+        return ""
+    return f"{ph['first_evaluation']:.1f} / {ph['after_update']:.1f}"
+
+
 def markdown(report):
-    rows = ["| scenario | Lattice modifier, ms (min-max) | VP-FFD XYZ, ms (min-max) | ratio | VP-FFD's own update, ms |",
-            "|---|---|---|---|---|"]
+    rows = ["| scenario | Lattice modifier, ms (min-max) | VP-FFD XYZ, ms (min-max) | ratio | VP-FFD's own update, ms "
+            "| Blender's evaluations before / after the update, ms |",
+            "|---|---|---|---|---|---|"]
     for r in report["frame_set"]:
         lm, vf, up = r["lattice_modifier_ms"], r["vpffd_ms"], r["vpffd_update_ms"]
         name = r["scenario"]
         if "armature_only_ms" in r:
             name += f" (Armature alone: {r['armature_only_ms']['median']:.1f} ms, paid twice by VP-FFD)"
         rows.append(f"| {name} | {lm['median']:.1f} ({lm['min']:.1f}-{lm['max']:.1f}) | "
-                    f"{vf['median']:.1f} ({vf['min']:.1f}-{vf['max']:.1f}) | {r['ratio']:.2f}x | "
-                    f"{up['median']:.1f} |")
+                    f"{vf['median']:.1f} ({vf['min']:.1f}-{vf['max']:.1f}) | {r['ratio']:.2f}x{_rounds(r)} | "
+                    f"{up['median']:.1f} | {_phase_cell(r)} |")
     c = report.get("cage")
     if c:
         rows.append(f"| {c['scenario']} | (no such modifier) | {c['vpffd_ms']['median']:.0f} "
                     f"({c['vpffd_ms']['min']:.0f}-{c['vpffd_ms']['max']:.0f}) | | "
-                    f"{c['vpffd_update_ms']['median']:.0f} |")
+                    f"{c['vpffd_update_ms']['median']:.0f} | |")
     b = report["bind"]
     binds = ", ".join(f"{int(k.rsplit('_', 1)[1]):,} vertices {v:.0f} ms" for k, v in b.items()
                       if k.startswith("vp_bind_ms_"))

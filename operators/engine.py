@@ -186,6 +186,7 @@ class _Bound:
         self.overlay = None
         self.gpu = None         # GPUSolver for the current binding, made on first GPU use
         self.gpu_binding = None
+        self.last_binding = None  # the binding of the last solve (Auto uploads one used twice)
         self.backend = ("CPU", "")
         self.settings = None
         self.deleted = None     # name of the lattice that the user deleted, for the panel
@@ -208,7 +209,9 @@ class _Bound:
         """The pipeline's solver: the GPU path when the settings' backend and the machine allow
         it, else (or when it fails) the CPU path."""
         s = self.settings
-        use_gpu, why = gpu_backend.choose(s.backend, binding.n_verts, options, binding)
+        fresh = binding is not self.gpu_binding and binding is not self.last_binding
+        self.last_binding = binding
+        use_gpu, why = gpu_backend.choose(s.backend, binding.n_verts, options, binding, fresh)
         if use_gpu:
             try:
                 if self.gpu is None or self.gpu_binding is not binding:

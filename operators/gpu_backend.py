@@ -167,11 +167,14 @@ def _binding_fits(b):
     return True, "supported"
 
 
-def choose(backend, n_verts, options=None, binding=None):
+def choose(backend, n_verts, options=None, binding=None, fresh=False):
     """(use_gpu, reason) for a backend setting 'AUTO', 'CPU' or 'GPU'. Never raises.
 
     AUTO: the GPU when it is available, supports the options, the mesh has at least
-    AUTO_MIN_VERTS vertices, and the renderer is a real GPU (not software OpenGL).
+    AUTO_MIN_VERTS vertices, the renderer is a real GPU (not software OpenGL), and the binding is
+    not `fresh` (made for this frame and not yet used by an earlier one: an input that moves
+    relative to the lattice is embedded anew on every frame, and uploading each embedding costs
+    several CPU solves; docs/performance.md, "The GPU path on a hardware GPU").
     GPU: the GPU whenever it can run; otherwise the CPU, with the reason."""
     backend = str(backend).upper()
     if backend == "CPU":
@@ -181,6 +184,10 @@ def choose(backend, n_verts, options=None, binding=None):
         return False, why
     if backend == "AUTO" and n_verts < AUTO_MIN_VERTS:
         return False, f"Auto: {n_verts} vertices (< {AUTO_MIN_VERTS}) are faster on the CPU"
+    if backend == "AUTO" and fresh:
+        return False, ("Auto: the mesh is embedded in the lattice anew on this frame (it moved "
+                       "relative to it), and uploading a new embedding to the GPU costs more than "
+                       "the GPU saves")
     ok, why = available()
     if not ok:
         return False, why
@@ -565,7 +572,10 @@ class _GPUSteps(_vsteps.Steps):
         T = self.s.tex
         self.s._run("gather", self.s.V, [("slot", T["slot"]), ("x_0", T["X"][0]), ("x_1", T["X"][1]),
                                          ("x_2", T["X"][2])], [("verts_out", T["verts"])], [("n", self.s.V)])
-        return read_texture(T["verts"], self.s.V, 4)[:, :3].astype(np.float64) + self.s.origins
+        # One pass: the float32 texels widen to float64 inside the addition (as astype would).
+        out = np.empty((self.s.V, 3))
+        np.add(read_texture(T["verts"], self.s.V, 4)[:, :3], self.s.origins, out=out)
+        return out
 
     def finite(self):
         return True       # the coordinates are checked where they come back (`verts`)

@@ -133,7 +133,8 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
     backend: EnumProperty(
         name="Backend", default="AUTO", update=_settings_changed,
         items=[("AUTO", "Auto", "The GPU when a hardware GPU context exists, the mesh is large enough "
-                                "to gain and the settings allow it; otherwise the CPU"),
+                                "to gain, the settings allow it and the mesh keeps its place in the "
+                                "lattice from one frame to the next; otherwise the CPU"),
                ("CPU", "CPU", "Always solve on the CPU (NumPy)"),
                ("GPU", "GPU", "Solve with compute shaders whenever possible (falls back to the CPU, "
                               "saying why, when it cannot)")],

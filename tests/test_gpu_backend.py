@@ -119,6 +119,11 @@ def test_supports_and_choose():
     assert not ok and "vertices" in why
     ok, why = mod.choose("GPU", 10 ** 6, dict(axes="XYZ", islands=True))
     assert not ok and "island" in why
+    # A binding made for this frame only (the mesh moves through the lattice): Auto keeps the
+    # CPU, since the upload costs more than the GPU saves; an explicit GPU still takes it.
+    ok, why = mod.choose("AUTO", 10 ** 6, dict(axes="XYZ"), fresh=True)
+    assert not ok and "anew" in why
+    assert "anew" not in mod.choose("GPU", 10 ** 6, dict(axes="XYZ"), fresh=True)[1]
 
 
 def test_readback_matches_to_list_and_is_fast(gb):
@@ -304,4 +309,53 @@ def test_the_extension_solves_on_the_gpu_when_asked_and_says_why_when_it_does_no
     assert engine.update(ob, bpy.context.evaluated_depsgraph_get(), force=True)
     info = engine.stats(ob)
     assert info["backend"] == "CPU" and "Auto" in info["backend_reason"]
+    eh.reset_scene()
+
+
+def test_auto_offers_the_gpu_a_binding_only_once_a_second_frame_uses_it(vpffd, monkeypatch):
+    """Uploading an embedding costs several CPU solves (docs/performance.md), so the engine tells
+    the backend choice which bindings are fresh: every frame's when the mesh moves through the
+    lattice (embedded anew each time), only the first when just the lattice's points move."""
+    import bpy
+    from . import extension_harness as eh
+    from .blender_ref import squash_lattice, triangle_mesh
+    gpu_backend = vpffd.module.operators.gpu_backend
+    real = gpu_backend.choose
+    seen = []
+
+    def recording(backend, n_verts, options=None, binding=None, fresh=False):
+        seen.append((fresh, binding))     # kept alive: ids of freed bindings can recur
+        return real(backend, n_verts, options, binding, fresh)
+
+    monkeypatch.setattr(gpu_backend, "choose", recording)
+    for moving in ("lattice points", "mesh"):
+        eh.reset_scene()
+        verts, tris = vp.icosphere(3, 0.4)
+        ob = bpy.data.objects.new("Ball", triangle_mesh(verts, tris, "Ball"))
+        bpy.context.scene.collection.objects.link(ob)
+        lat, key = squash_lattice("L", (4, 4, 4), (1.0 / 3.0,) * 3, 0.6, 0.15)
+        for f, v in ((1, 0.2), (6, 0.9)):
+            if moving == "mesh":
+                ob.location = (0.1 * v, 0, 0)
+                ob.keyframe_insert("location", frame=f)
+            else:
+                key.value = v
+                key.keyframe_insert("value", frame=f)
+        ob.vpffd.lattice = lat
+        ob.vpffd.axes = "XYZ"
+        bpy.context.scene.frame_set(1)
+        with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+            assert bpy.ops.object.vpffd_bind() == {"FINISHED"}
+        del seen[:]
+        for f in range(2, 6):
+            bpy.context.scene.frame_set(f)
+        assert seen, "the engine never asked where to solve"
+        fresh = [f for f, _ in seen]
+        bindings = {id(b) for _, b in seen}
+        if moving == "mesh":
+            # A new embedding on every frame, each fresh when it is first solved.
+            assert len(bindings) >= 4 and fresh.count(True) == len(bindings), seen
+        else:
+            # One embedding for every frame: never fresh again after its first solve.
+            assert len(bindings) == 1 and not any(fresh), seen
     eh.reset_scene()

@@ -110,13 +110,15 @@ def axis_taps(x, n, lo, hi, kind, derivative=False):
     edge = np.flatnonzero((i < 1) | (i > n - 3))
     if len(edge):
         ie = i[edge]
-        offsets = np.clip(ie[:, None] - 1 + np.arange(4), 0, n - 1) - first[edge, None]
+        offsets = np.clip(ie[:, None] - 1 + np.arange(4), 0, n - 1) - first[edge, None]   # in 0..3
+        rows = np.arange(len(edge))
         for arr in ((w, dw) if derivative else (w,)):
             src = arr[edge]
             folded = np.zeros_like(src)
-            for j in range(4):
-                for k in range(4):
-                    folded[:, j] += np.where(offsets[:, k] == j, src[:, k], 0.0)
+            # Tap k lands on offset offsets[:, k]; each statement touches every row once, so the
+            # fancy-indexed += is exact, and the taps add up in the order k = 0..3.
+            for k in range(4):
+                folded[rows, offsets[:, k]] += src[:, k]
             arr[edge] = folded
     if not derivative:
         return first, w

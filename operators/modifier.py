@@ -2,15 +2,14 @@
 its slot (see docs/stack.md for the evaluation order).
 
 Its node group does two things with the geometry that reaches it:
-- the *tap*: a copy of the input as a point cloud (radius 0, marked `vpffd_tap`), with the live
+- the *tap*: a copy of the input's points (radius 0, marked `vpffd_tap`), with the live
   vertex-group weight of every point (`vpffd_weight`). It passes through the modifiers after the
   slot untouched, so the handler reads the slot's input from the end of the stack;
 - the *result*: the input moved by per-point offsets read, by index, from the object's solver
   helper (a hidden vertex-only mesh object that the handler writes after every solve).
-In Blender 4.4 and newer the tap's points are instances of nothing (an instance per point, its
-transform carrying the position, its attributes the weight): Python reads them from the object's
-evaluated geometry, while renders and exporters (Alembic, USD), which see only instances of
-something, get nothing of VP-FFD's. Blender 4.2 and 4.3 offer Python no way to read those, so there
+In Blender 4.4 and newer the tap is instances of nothing, each carrying PACK of the input's points
+as attributes: Python reads them from the object's evaluated geometry, while renders and exporters
+(Alembic, USD), which see only instances of something, get nothing of VP-FFD's. Blender 4.2 and 4.3 offer Python no way to read those, so there
 the tap is a point cloud, which those exporters write as a second copy of the mesh.
 Being a real modifier, it is toggled, reordered and removed like any other. The helper also keeps
 what Bind saves (pins, a cage's rest shape) as custom properties: it is local data of the file,
@@ -22,7 +21,7 @@ import numpy as np
 MODIFIER_NAME = "VP-FFD"
 NODE_GROUP_NAME = "VP-FFD"
 _TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
-_VERSION = 4                 # the tag's value: groups of older versions are rebuilt
+_VERSION = 5                 # the tag's value: groups of older versions are rebuilt
 _KIND = "vpffd_tap_kind"     # how the group's tap is made: "INSTANCES" or "POINTS"
 LATTICE_INPUT = "Lattice"   # object input: makes the lattice or cage a dependency of the mesh
 SOLVER_INPUT = "Solver"     # object input: the helper holding the offsets
@@ -33,7 +32,13 @@ TAP_ATTRIBUTE = "vpffd_tap"
 FACE_ATTRIBUTE = "vpffd_face"          # marks the face tap's points
 CORNER_ATTRIBUTES = ("vpffd_c0", "vpffd_c1", "vpffd_c2")   # a triangle's vertex indices
 WEIGHT_ATTRIBUTE = "vpffd_weight"
-POSITION_ATTRIBUTE = "vpffd_co"        # the tap's positions, on its instances
+# The tap of Blender 4.4+ packs PACK vertices into every instance (making an instance costs far
+# more than a value stored on it): vertex PACK * i + k of the slot is instance i's vpffd_co{k} and
+# vpffd_w{k}; every instance also carries the slot's vertex count.
+PACK = 8
+PACKED_POSITIONS = tuple(f"vpffd_co{k}" for k in range(PACK))
+PACKED_WEIGHTS = tuple(f"vpffd_w{k}" for k in range(PACK))
+COUNT_ATTRIBUTE = "vpffd_count"
 HELPER_TAG = "vpffd_solver"  # custom property of helper objects: the name of their mesh object
 
 
@@ -61,6 +66,77 @@ def _store(N, link, geometry, data_type, domain, name, value=None):
 def tap_kind():
     """The tap this Blender can read: instances of nothing (4.4+) or a point cloud."""
     return "INSTANCES" if hasattr(bpy.types.Object, "evaluated_geometry") else "POINTS"
+
+
+def _sampled(N, link, geometry, data_type, value, index=None):
+    """A Sample Index node reading field `value` of `geometry`'s points at `index` (an integer
+    socket; by default the index of the element it is evaluated for). Out of range: zero."""
+    sample = N.new("GeometryNodeSampleIndex")
+    sample.data_type = data_type
+    sample.domain = "POINT"
+    link(geometry, sample.inputs["Geometry"])
+    link(value, sample.inputs["Value"])
+    link(index if index is not None else N.new("GeometryNodeInputIndex").outputs[0], sample.inputs["Index"])
+    return sample.outputs[0]
+
+
+def _int_math(N, link, operation, a, b, c=None):
+    """a (op) b [(op) c] on integers: the Integer Math node where Blender has it, else the float
+    Math node (exact below 2**24, far beyond any mesh a lattice deforms at interactive rates)."""
+    if hasattr(bpy.types, "FunctionNodeIntegerMath"):
+        node = N.new("FunctionNodeIntegerMath")
+        node.operation = operation
+    else:
+        node = N.new("ShaderNodeMath")
+        node.operation = {"DIVIDE_CEIL": "DIVIDE", "MULTIPLY_ADD": "MULTIPLY_ADD"}[operation]
+    for socket, value in zip(node.inputs, (a, b, c)):
+        if isinstance(value, bpy.types.NodeSocket):
+            link(value, socket)
+        elif value is not None:
+            socket.default_value = value
+    out = node.outputs[0]
+    if operation == "DIVIDE_CEIL" and node.bl_idname == "ShaderNodeMath":
+        ceil = N.new("ShaderNodeMath")
+        ceil.operation = "CEIL"
+        link(out, ceil.inputs[0])
+        out = ceil.outputs[0]
+    return out
+
+
+def _vertex_tap(N, link, mesh, weight, kind):
+    """The tap of the vertices of `mesh` (in vertex order), with the float field `weight`
+    (evaluated on the mesh); every element marked with TAP_ATTRIBUTE. Made with a Points node that
+    samples the mesh by index, not Mesh to Points, which copies every attribute of the mesh
+    (10 ms per evaluation at 163,842 vertices against about 1 ms).
+    - kind "POINTS": one point per vertex at its position, the weight as WEIGHT_ATTRIBUTE.
+    - kind "INSTANCES": instances of nothing, each carrying PACK vertices (PACKED_POSITIONS,
+      PACKED_WEIGHTS) and the vertex count (COUNT_ATTRIBUTE): an instance per vertex cost about
+      6 ms per evaluation more.
+    Returns (the first node, the marking node)."""
+    size = N.new("GeometryNodeAttributeDomainSize")
+    size.component = "MESH"
+    link(mesh, size.inputs["Geometry"])
+    count = size.outputs["Point Count"]
+    points = N.new("GeometryNodePoints")
+    points.inputs["Radius"].default_value = 0.0
+    position = N.new("GeometryNodeInputPosition").outputs[0]
+    if kind != "INSTANCES":
+        link(count, points.inputs["Count"])
+        link(_sampled(N, link, mesh, "FLOAT_VECTOR", position), points.inputs["Position"])
+        tapped = _store(N, link, points.outputs[0], "FLOAT", "POINT", WEIGHT_ATTRIBUTE,
+                        _sampled(N, link, mesh, "FLOAT", weight)).outputs[0]
+        return points, _store(N, link, tapped, "BOOLEAN", "POINT", TAP_ATTRIBUTE, True)
+    link(_int_math(N, link, "DIVIDE_CEIL", count, PACK), points.inputs["Count"])
+    tapped = _store(N, link, points.outputs[0], "INT", "POINT", COUNT_ATTRIBUTE, count).outputs[0]
+    for k in range(PACK):
+        index = _int_math(N, link, "MULTIPLY_ADD", N.new("GeometryNodeInputIndex").outputs[0], PACK, k)
+        tapped = _store(N, link, tapped, "FLOAT_VECTOR", "POINT", PACKED_POSITIONS[k],
+                        _sampled(N, link, mesh, "FLOAT_VECTOR", position, index)).outputs[0]
+        tapped = _store(N, link, tapped, "FLOAT", "POINT", PACKED_WEIGHTS[k],
+                        _sampled(N, link, mesh, "FLOAT", weight, index)).outputs[0]
+    instances = N.new("GeometryNodeInstanceOnPoints")
+    link(tapped, instances.inputs["Points"])
+    return points, _store(N, link, instances.outputs[0], "BOOLEAN", "INSTANCE", TAP_ATTRIBUTE, True)
 
 
 def _marked_points(N, link, geometry, mode, marker, kind):
@@ -131,16 +207,7 @@ def _build(ng):
     link(group.outputs["Exists"], pick_exists.inputs["Switch"])
     pick_exists.inputs["False"].default_value = 1.0
     link(pick_invert.outputs[0], pick_exists.inputs["True"])
-    store_weight = _store(N, link, gin.outputs[0], "FLOAT", "POINT", WEIGHT_ATTRIBUTE,
-                          pick_exists.outputs[0])
-    tapped = store_weight.outputs[0]
-    if kind == "INSTANCES":
-        # Also as a plain vector attribute: reading it is ten times faster than reading the
-        # instances' 4x4 transforms.
-        store_co = _store(N, link, tapped, "FLOAT_VECTOR", "POINT", POSITION_ATTRIBUTE,
-                          N.new("GeometryNodeInputPosition").outputs[0])
-        tapped = store_co.outputs[0]
-    points, mark = _marked_points(N, link, tapped, "VERTICES", TAP_ATTRIBUTE, kind)
+    points, mark = _vertex_tap(N, link, gin.outputs[0], pick_exists.outputs[0], kind)
 
     # Face tap (only when asked): one point per triangle of the triangulated input, carrying its
     # three vertex indices, in the triangle's own corner order.
@@ -169,7 +236,7 @@ def _build(ng):
     link(join.outputs[0], gout.inputs[0])
     for node, x, y in ((gin, -900, 0), (info, -650, -250), (sample, -400, -200), (move, -150, 0),
                        (group, -900, -450), (inverted, -650, -500), (pick_invert, -450, -450),
-                       (pick_exists, -250, -450), (store_weight, -150, -300), (points, 50, -300),
+                       (pick_exists, -250, -450), (points, 50, -300),
                        (mark, 250, -300), (faces, -450, -700), (face_points, 450, -700),
                        (face_mark, 650, -700), (only_if, 850, -500), (join, 1050, 0), (gout, 1250, 0)):
         node.location = (x, y)
@@ -363,6 +430,36 @@ def _tap_cloud(ob_eval, depsgraph):
     return None, None, False
 
 
+def _packed_tap(attrs, n):
+    """(is_tap (n,) bool, positions (V, 3) float32, weights (V,) float32) of a packed instance
+    tap (see PACK), or None when its attributes are missing."""
+    mark, count = attrs.get(TAP_ATTRIBUTE), attrs.get(COUNT_ATTRIBUTE)
+    if mark is None or count is None:
+        return None
+    is_tap = np.empty(n, bool)
+    mark.data.foreach_get("value", is_tap)
+    m = int(is_tap.sum())
+    if m == 0:
+        return None
+    counts = np.empty(n, np.int32)
+    count.data.foreach_get("value", counts)
+    V = int(counts[is_tap][0])
+    if not 0 <= V <= m * PACK:
+        return None
+    co = np.empty((m * PACK, 3), np.float32)
+    w = np.empty(m * PACK, np.float32)
+    vec, val = np.empty(n * 3, np.float32), np.empty(n, np.float32)
+    for k in range(PACK):
+        p, q = attrs.get(PACKED_POSITIONS[k]), attrs.get(PACKED_WEIGHTS[k])
+        if p is None or q is None:
+            return None
+        p.data.foreach_get("vector", vec)
+        q.data.foreach_get("value", val)
+        co[k::PACK] = vec.reshape(n, 3)[is_tap]
+        w[k::PACK] = val[is_tap]
+    return is_tap, co[:V], w[:V]
+
+
 def read_tap(ob_eval, depsgraph):
     """(positions (V, 3) float32, weights (V,) float32, triangles (F, 3) int64 or None) of the
     geometry that reached the VP-FFD slot in this evaluation, in the object's space; the
@@ -372,26 +469,24 @@ def read_tap(ob_eval, depsgraph):
     if cloud is None:
         return None
     attrs = cloud.attributes
-    position = attrs.get(POSITION_ATTRIBUTE) if from_instances else None
-    if position is None:
-        position = attrs.get("instance_transform" if from_instances else "position")
-    weight, mark = attrs.get(WEIGHT_ATTRIBUTE), attrs.get(TAP_ATTRIBUTE)
-    if position is None or mark is None:
-        return None
-    n = len(position.data)
-    if position.data_type == "FLOAT4X4":
-        # An instance's position is the translation of its transform (stored column by column).
-        matrices = np.empty(n * 16, np.float32)
-        position.data.foreach_get("value", matrices)
-        co = np.ascontiguousarray(matrices.reshape(n, 4, 4)[:, 3, :3])
+    if from_instances:
+        n = len(attrs.get(TAP_ATTRIBUTE).data)
+        packed = _packed_tap(attrs, n)
+        if packed is None:
+            return None
+        is_tap, co, w = packed
     else:
+        position, weight, mark = attrs.get("position"), attrs.get(WEIGHT_ATTRIBUTE), attrs.get(TAP_ATTRIBUTE)
+        if position is None or mark is None:
+            return None
+        n = len(position.data)
         co = np.empty(n * 3, np.float32)
         position.data.foreach_get("vector", co)
-    w = np.ones(n, np.float32)
-    if weight is not None and weight.data_type == "FLOAT":
-        weight.data.foreach_get("value", w)
-    is_tap = np.empty(n, bool)
-    mark.data.foreach_get("value", is_tap)
+        w = np.ones(n, np.float32)
+        if weight is not None and weight.data_type == "FLOAT":
+            weight.data.foreach_get("value", w)
+        is_tap = np.empty(n, bool)
+        mark.data.foreach_get("value", is_tap)
     co = co.reshape(-1, 3)
     tris = None
     face_mark = attrs.get(FACE_ATTRIBUTE)
@@ -408,6 +503,6 @@ def read_tap(ob_eval, depsgraph):
             corners.append(c[is_face])
         if len(corners) == 3:
             tris = np.stack(corners, 1).astype(np.int64)
-    if not is_tap.all():       # the face tap, or points that a later modifier joined
+    if not from_instances and not is_tap.all():  # the face tap, or points a later modifier joined
         co, w = co[is_tap], w[is_tap]
     return co, w, tris

@@ -446,17 +446,19 @@ def _packed_tap(attrs, n):
     V = int(counts[is_tap][0])
     if not 0 <= V <= m * PACK:
         return None
-    co = np.empty((m * PACK, 3), np.float32)
-    w = np.empty(m * PACK, np.float32)
-    vec, val = np.empty(n * 3, np.float32), np.empty(n, np.float32)
+    # Straight into (PACK, n, ...) buffers, then one transposed copy: vertex PACK * i + k is
+    # row i of layer k.
+    vec, val = np.empty((PACK, n, 3), np.float32), np.empty((PACK, n), np.float32)
     for k in range(PACK):
         p, q = attrs.get(PACKED_POSITIONS[k]), attrs.get(PACKED_WEIGHTS[k])
         if p is None or q is None:
             return None
-        p.data.foreach_get("vector", vec)
-        q.data.foreach_get("value", val)
-        co[k::PACK] = vec.reshape(n, 3)[is_tap]
-        w[k::PACK] = val[is_tap]
+        p.data.foreach_get("vector", vec[k].reshape(-1))
+        q.data.foreach_get("value", val[k])
+    if m < n:           # the face tap, or instances that a later modifier joined
+        vec, val = vec[:, is_tap], val[:, is_tap]
+    co = vec.transpose(1, 0, 2).reshape(-1, 3)
+    w = val.T.reshape(-1)
     return is_tap, co[:V], w[:V]
 
 

@@ -345,17 +345,23 @@ def finish(b, rel, tris, labels, n_slots):
     tris_t = b.topology.tris_t
     corners = np.take(slot, tris_t)
     lowest = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
-    corners = np.take(corners, stable_order(lowest // getattr(b, "block_size", 1)), axis=1)
-    b.corner_parts = [np.ascontiguousarray(corners[:, fs]) for fs in parallel.split(corners.shape[1], V)]
+    face_order = stable_order(lowest // getattr(b, "block_size", 1))
+    corners = np.take(corners, face_order, axis=1)
+    face_parts = parallel.split(corners.shape[1], V)
+    b.corner_parts = [np.ascontiguousarray(corners[:, fs]) for fs in face_parts]
     b.vertex_parts = parallel.split(V, V)
 
-    face_island = b.topology.face_island
-    coords_t = np.ascontiguousarray(rel.T)
-    face_vol = np.empty(tris_t.shape[1])
+    # The faces' volume terms, in float64 from the coordinates in slot order: the sorted faces'
+    # corners lie close together there, so the gathers stay in cache (about three times faster
+    # than gathering in the mesh's own vertex order).
+    face_island = b.topology.face_island[face_order]
+    coords = np.zeros((3, n_slots))
+    coords[:, slot] = rel.T
+    face_vol = np.empty(corners.shape[1])
 
-    def volumes(fs):   # elementwise per face: split over the threads, bit for bit the same
-        face_vol[fs] = face_volumes(coords_t, tris_t[:, fs])
-    parallel.run(volumes, parallel.split(len(face_vol), V))
+    def volumes(k):
+        face_vol[face_parts[k]] = face_volumes(coords, b.corner_parts[k])
+    parallel.run(volumes, list(range(len(face_parts))))
     b.rest_island_volumes = np.bincount(face_island, face_vol, b.n_islands)
     b.rest_volume = float(face_vol.sum())
     # The volume's rounding in the binding's precision: a few ulps of every face's term. An open

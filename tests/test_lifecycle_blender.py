@@ -6,6 +6,8 @@ it as they leave a mesh with Blender's Lattice modifier.
   linked in another scene only leaves this one and keeps deforming.
 - X on the VP-FFD modifier, or Blender's Apply (Ctrl+A) on it: the object is no longer bound and
   no error stays behind; Apply leaves the deformed shape in the mesh.
+- Opening a file saved with an older version's node group: the group is rebuilt and the mesh
+  deforms as before.
 """
 import numpy as np
 import pytest
@@ -183,4 +185,27 @@ def test_vpffd_apply_needs_its_input_to_be_the_meshs_own_coordinates(ext):
         assert bpy.ops.object.vpffd_apply() == {"FINISHED"}
     assert not ball.vpffd.is_bound
     ball.modifiers.remove(smooth)
+    np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
+
+
+def test_a_file_with_an_older_node_group_is_rebuilt_when_it_loads(ext, tmp_path):
+    """A file saved by an earlier version carries that version's node group, whose tap this one
+    may not read: loading the file rebuilds the group, and the mesh deforms as before."""
+    modifier = ext.module.operators.modifier
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    shown = _coords(ball)
+    ng = ball.modifiers["VP-FFD"].node_group
+    # What an older version left: its own version number, and a tree without today's tap.
+    ng[modifier._TAG] = modifier._VERSION - 1
+    ng.nodes.clear()
+    ng.links.new(ng.nodes.new("NodeGroupInput").outputs[0], ng.nodes.new("NodeGroupOutput").inputs[0])
+    path = str(tmp_path / "older.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    ball = bpy.data.objects["Ball"]
+    ng = ball.modifiers["VP-FFD"].node_group
+    assert ng.get(modifier._TAG) == modifier._VERSION
+    bpy.context.scene.frame_set(bpy.context.scene.frame_current)
+    assert _engine(ext).stats(ball).get("error") is None
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)

@@ -381,7 +381,8 @@ def markdown(report):
                 f"({b['undo_handler_ms']:.0f} ms, so that the panel describes it), "
                 f"{'re-embedding it' if b.get('rebound_after_undo') else 'without re-embedding'}; the "
                 f"first frame after it takes {b['first_frame_after_undo_ms']:.0f} ms (an ordinary frame: "
-                f"{b['ordinary_frame_ms']:.0f} ms; medians of three).")
+                f"{b['ordinary_frame_ms']:.0f} ms; medians of three undo steps and of four "
+                f"ordinary frames).")
     isl = report.get("islands")
     if isl:
         rows.append("")

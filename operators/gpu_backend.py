@@ -172,7 +172,7 @@ def choose(backend, n_verts, options=None, binding=None, fresh=False):
 
     AUTO: the GPU when it is available, supports the options, the mesh has at least
     AUTO_MIN_VERTS vertices, the renderer is a real GPU (not software OpenGL), and the binding is
-    not `fresh` (made for this frame and not yet used by an earlier one: an input that moves
+    not `fresh` (made for this solve and not yet used by an earlier one: an input that moves
     relative to the lattice is embedded anew on every frame, and uploading each embedding costs
     several CPU solves; docs/performance.md, "The GPU path on a hardware GPU").
     GPU: the GPU whenever it can run; otherwise the CPU, with the reason."""
@@ -185,9 +185,9 @@ def choose(backend, n_verts, options=None, binding=None, fresh=False):
     if backend == "AUTO" and n_verts < AUTO_MIN_VERTS:
         return False, f"Auto: {n_verts} vertices (< {AUTO_MIN_VERTS}) are faster on the CPU"
     if backend == "AUTO" and fresh:
-        return False, ("Auto: the mesh is embedded in the lattice anew on this frame (it moved "
-                       "relative to it), and uploading a new embedding to the GPU costs more than "
-                       "the GPU saves")
+        return False, ("Auto: this embedding of the mesh in the lattice is new (just bound, or the "
+                       "mesh moved relative to the lattice); it goes to the GPU once a second "
+                       "solve uses it, since uploading it costs more than the GPU saves on one")
     ok, why = available()
     if not ok:
         return False, why

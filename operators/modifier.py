@@ -3,7 +3,8 @@ its slot (see docs/stack.md for the evaluation order).
 
 Its node group does two things with the geometry that reaches it:
 - the *tap*: a copy of the input's points (radius 0, marked `vpffd_tap`), with the live
-  vertex-group weight of every point (`vpffd_weight`). It passes through the modifiers after the
+  vertex-group weight of every point (`vpffd_weight`; packed with the positions in Blender 4.4+,
+  see PACK). It passes through the modifiers after the
   slot untouched, so the handler reads the slot's input from the end of the stack;
 - the *result*: the input moved by per-point offsets read, by index, from the object's solver
   helper (a hidden vertex-only mesh object that the handler writes after every solve).
@@ -107,11 +108,11 @@ def _vertex_tap(N, link, mesh, weight, kind):
     """The tap of the vertices of `mesh` (in vertex order), with the float field `weight`
     (evaluated on the mesh); every element marked with TAP_ATTRIBUTE. Made with a Points node that
     samples the mesh by index, not Mesh to Points, which copies every attribute of the mesh
-    (10 ms per evaluation at 163,842 vertices against about 1 ms).
+    (7-14 ms per evaluation at 163,842 vertices against about 1 ms).
     - kind "POINTS": one point per vertex at its position, the weight as WEIGHT_ATTRIBUTE.
     - kind "INSTANCES": instances of nothing, each carrying PACK vertices (PACKED_POSITIONS,
       PACKED_WEIGHTS) and the vertex count (COUNT_ATTRIBUTE): an instance per vertex cost about
-      6 ms per evaluation more.
+      5 ms per evaluation more.
     Returns (the first node, the marking node)."""
     size = N.new("GeometryNodeAttributeDomainSize")
     size.component = "MESH"
@@ -410,7 +411,7 @@ def read_offsets(helper_ob):
 
 def _tap_cloud(ob_eval, depsgraph):
     """(a point cloud that carries the tap or None, an object to keep alive while it is read,
-    whether its positions are in `instance_transform`)."""
+    whether it is the instances' point cloud, i.e. the packed tap of Blender 4.4+)."""
     get = getattr(ob_eval, "evaluated_geometry", None)
     if get is not None:        # newer Blender: the object's own geometry set
         try:

@@ -122,8 +122,8 @@ def test_supports_and_choose():
     # A binding made for this frame only (the mesh moves through the lattice): Auto keeps the
     # CPU, since the upload costs more than the GPU saves; an explicit GPU still takes it.
     ok, why = mod.choose("AUTO", 10 ** 6, dict(axes="XYZ"), fresh=True)
-    assert not ok and "anew" in why
-    assert "anew" not in mod.choose("GPU", 10 ** 6, dict(axes="XYZ"), fresh=True)[1]
+    assert not ok and "embedding" in why and "second solve" in why
+    assert "second solve" not in mod.choose("GPU", 10 ** 6, dict(axes="XYZ"), fresh=True)[1]
 
 
 def test_readback_matches_to_list_and_is_fast(gb):

@@ -335,9 +335,11 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
 def finish(b, rel, tris, labels, n_slots):
     """Store rest coordinates, faces and volumes once `b.slot` (V,) is known."""
     slot, V = b.slot, b.n_verts
-    x0 = np.zeros((3, n_slots), b.dtype)
-    x0[:, slot] = rel.T
-    b.x0 = x0
+    # Rest coordinates in slot order: float64 for the faces' volume terms below, and in the
+    # binding's precision as x0 (the same rounding as storing them straight into it).
+    coords = np.zeros((3, n_slots))
+    coords[:, slot] = rel.T
+    x0 = b.x0 = coords.astype(b.dtype)
     # Faces as (3, F) slots, ordered by the block of their lowest slot so that gathers walk
     # memory forwards (a stable sort: ties keep the faces' own order, whatever NumPy's algorithm).
     # Everything face-wise is kept as (3, F) rows: gathers of whole rows are several times faster
@@ -355,8 +357,6 @@ def finish(b, rel, tris, labels, n_slots):
     # corners lie close together there, so the gathers stay in cache (about three times faster
     # than gathering in the mesh's own vertex order).
     face_island = b.topology.face_island[face_order]
-    coords = np.zeros((3, n_slots))
-    coords[:, slot] = rel.T
     face_vol = np.empty(corners.shape[1])
 
     def volumes(k):

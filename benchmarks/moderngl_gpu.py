@@ -60,6 +60,7 @@ class GPUTexture:
 class GPUShaderCreateInfo:
     def __init__(self):
         self.samplers, self.images, self.consts, self.local, self.source = [], [], [], (1, 1, 1), ""
+        self.defines, self.typedefs = [], []
 
     def sampler(self, slot, kind, name):
         self.samplers.append((slot, name))
@@ -73,14 +74,21 @@ class GPUShaderCreateInfo:
     def local_group_size(self, x, y=1, z=1):
         self.local = (x, y, z)
 
+    def define(self, name, value=""):
+        self.defines.append((name, value))
+
+    def typedef_source(self, source):
+        self.typedefs.append(source)
+
     def compute_source(self, source):
         self.source = source
 
 
 class GPUShader:
     def __init__(self, info):
-        lines = ["#version 430",
-                 "layout(local_size_x = %d, local_size_y = %d, local_size_z = %d) in;" % info.local]
+        # Blender's order: defines, resources, the typedef source, then the compute source.
+        lines = ["#version 430"] + [f"#define {name} {value}" for name, value in info.defines]
+        lines.append("layout(local_size_x = %d, local_size_y = %d, local_size_z = %d) in;" % info.local)
         for slot, name in info.samplers:
             lines.append(f"layout(binding = {slot}) uniform sampler2D {name};")
         for slot, fmt, name, quals in info.images:
@@ -88,6 +96,7 @@ class GPUShader:
             lines.append(f"layout(binding = {slot}, {_IMAGE_FORMAT[fmt]}) uniform {access}image2D {name};")
         for kind, name in info.consts:
             lines.append(f"uniform {kind} {name};")
+        lines.extend(info.typedefs)
         self.program = context().compute_shader("\n".join(lines) + "\n" + info.source)
         self.sampler_slot = {name: slot for slot, name in info.samplers}
         self.image_slot = {name: (slot, quals) for slot, _, name, quals in info.images}

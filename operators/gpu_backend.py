@@ -199,21 +199,21 @@ def choose(backend, n_verts, options=None, binding=None, fresh=False):
 # ------------------------------------------------------------------------------------------------
 # Kernels
 
-_HEADER = f"""
-#define TW {TW}
-#define TW_LOG {TW_LOG}
-#define GROUP {GROUP}
+# Constants reach the kernels as the create-info's defines, so that the shared-memory declarations
+# (below) see them too: Blender 5.1 and newer drop a `shared` declaration written in the compute
+# source, and a `#define` in that source is not visible to the typedef source that replaces it.
+_HEADER = """
 #define AT(i) ivec2((i) & (TW - 1), (i) >> TW_LOG)
 #define FETCH(t, i) texelFetch(t, AT(i), 0)
 #define IFETCH(t, i) int(texelFetch(t, AT(i), 0).r)
-int group_index() {{ return int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x); }}
-int global_index() {{ return group_index() * GROUP + int(gl_LocalInvocationID.x); }}
+int group_index() { return int(gl_WorkGroupID.y * gl_NumWorkGroups.x + gl_WorkGroupID.x); }
+int global_index() { return group_index() * GROUP + int(gl_LocalInvocationID.x); }
 """
 
 # Each kernel: (samplers, images, push constants, body). Sampler/image slots are numbered
 # distinctly within a kernel.
-# End of the two reduction kernels: a tree sum of each work group's vec2 `v` in shared memory,
-# written by the group's first invocation as one texel of `partial`.
+# End of the reduction kernel: a tree sum of each work group's vec2 `v` in shared memory (`acc`,
+# declared in _SHARED), written by the group's first invocation as one texel of `partial`.
 _GROUP_SUM_TAIL = """
   acc[t] = v;
   barrier();
@@ -260,7 +260,6 @@ void main() {
 }"""),
     "reduce_slots": (
         ("x0", "g", "s"), (("partial", "RGBA32F", "WRITE"),), (("INT", "n"), ("INT", "comp")), """
-shared vec2 acc[GROUP];
 void main() {
   int i = global_index();
   uint t = gl_LocalInvocationID.x;
@@ -304,6 +303,9 @@ void main() {
 }"""),
 }
 
+#: Work-group shared memory of each kernel that has any (given through the create-info).
+_SHARED = {"reduce_slots": "shared vec2 acc[GROUP];\n"}
+
 _kernel_cache = {}
 
 
@@ -313,7 +315,7 @@ def _kernels(bs, kw, kuv):
     if key in _kernel_cache:
         return _kernel_cache[key]
     gpu = _gpu()
-    defines = f"#define BS {bs}\n#define KW {kw}\n#define KUV {kuv}\n"
+    defines = {"TW": TW, "TW_LOG": TW_LOG, "GROUP": GROUP, "BS": bs, "KW": kw, "KUV": kuv}
     out = {}
     for name, (samplers, images, consts, body) in _KERNELS.items():
         try:
@@ -329,7 +331,11 @@ def _kernels(bs, kw, kuv):
             for typ, cname in consts:
                 info.push_constant(typ, cname)
             info.local_group_size(GROUP, 1, 1)
-            info.compute_source(defines + _HEADER + body)
+            for key, value in defines.items():
+                info.define(key, str(value))
+            if name in _SHARED:
+                info.typedef_source(_SHARED[name])
+            info.compute_source(_HEADER + body)
             out[name] = gpu.shader.create_from_info(info)
         except Exception as exc:
             raise GPUUnavailable(f"the GPU kernel '{name}' did not compile ({exc})") from None

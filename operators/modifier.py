@@ -19,6 +19,8 @@ writable even when the mesh is linked from a library.
 import bpy
 import numpy as np
 
+from . import node_inputs
+
 MODIFIER_NAME = "VP-FFD"
 NODE_GROUP_NAME = "VP-FFD"
 _TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
@@ -271,7 +273,7 @@ def _identifier(mod, name):
 
 def get_input(mod, name):
     key = _identifier(mod, name)
-    return None if key is None else mod.get(key)
+    return None if key is None else node_inputs.get(mod, key)
 
 
 def set_input(mod, name, value):
@@ -279,13 +281,13 @@ def set_input(mod, name, value):
     key = _identifier(mod, name)
     if key is None:
         return False
-    current = mod.get(key)
+    current = node_inputs.get(mod, key)
     if isinstance(value, (bpy.types.ID, type(None))):
         changed = current is not value
     else:
         changed = current != value
     if changed:
-        mod[key] = value
+        node_inputs.put(mod, key, value)
         mod.id_data.update_tag()   # a raw input value tags nothing by itself
     return changed
 

@@ -395,9 +395,16 @@ def test_float32_binding_reaches_target(seed, mode):
     b32 = vp.bind(lat, verts, tris, dtype=np.float32)
     sol = b32.solve(P, axes=axes, directions=dirs, volume_scale=scale)
     target = scale * vp.signed_volume(verts, tris)
+    b64 = vp.bind(lat, verts, tris)
+    if any("correction was refused" in w for w in sol.warnings):
+        # Allowed only where the float64 steps, re-run with the cap lifted, agree that the
+        # correction would move control points by more than the lattice's diagonal.
+        assert len(sol.warnings) == 1, sol.warnings
+        np.testing.assert_array_equal(sol.points, P.astype(sol.points.dtype))
+        assert _unrefused_reach(b64, P, axes, dirs, scale) > lat.diagonal
+        return
     assert sol.warnings == ()
     assert _rel(sol.volume, target) <= 1e-5
     assert _rel(vp.signed_volume(sol.verts, tris), target) <= 1e-5
     # float32 deformation agrees with float64 to float32 rounding.
-    b64 = vp.bind(lat, verts, tris)
     np.testing.assert_allclose(b32.deform(P), b64.deform(P), rtol=0, atol=1e-5 * lat.size)

@@ -350,8 +350,9 @@ def test_linked_duplicates_each_deform_their_own_placement(ext):
             assert eng.stats(ob).get("error") is None, f"{ob.name}: {eng.stats(ob).get('error')}"
         rest = eng.stats(twin)["input_volume"]
         assert abs(eng.stats(twin)["volume_percent"] - 100) <= 100 * VOLUME_TOL
-    helpers = {ob.modifiers[-1][k] for ob in (ball, twin) for k in ob.modifiers[-1].keys()
-               if getattr(ob.modifiers[-1][k], "type", None) == "MESH"}
+    inputs = ext.module.operators.node_inputs
+    helpers = {v for ob in (ball, twin) for v in inputs.values(ob.modifiers[-1]).values()
+               if getattr(v, "type", None) == "MESH"}
     assert len(helpers) == 2, "each object has a solver helper of its own"
     ball.vpffd.axes = twin.vpffd.axes = "NONE"
     scene.frame_set(15)

@@ -73,8 +73,8 @@ def test_zip_has_extension_at_its_root(zip_names):
 
 
 def test_zip_excludes_development_paths(zip_names):
-    banned_prefixes = ("tests/", "benchmarks/", "examples/", ".venv/", ".git/", ".ci/")
-    banned_names = ("dev", "requirements-dev.txt")
+    banned_prefixes = ("tests/", "benchmarks/", "examples/", ".venv/", ".git/", ".ci/", "requirements/")
+    banned_names = ("dev",)
     bad = [n for n in zip_names
            if n.startswith(banned_prefixes) or n in banned_names
            or "__pycache__/" in n or n.endswith((".pyc", ".zip"))]

@@ -9,7 +9,7 @@ import os
 import subprocess
 import sys
 import textwrap
-import time
+import zlib
 
 import numpy as np
 import pytest
@@ -58,9 +58,8 @@ def gb():
             bpy.data.objects.remove(camera)
             bpy.data.cameras.remove(data)
     ok, why = mod.available()
-    if not ok:
-        print(f"GPU path unavailable: {why}")
-        pytest.skip(f"GPU path unavailable: {why}")
+    if not ok:   # a GPU context exists (the render worked): a kernel that fails here is a bug
+        pytest.fail(f"the GPU path is unavailable although Blender has a GPU context: {why}")
     print(f"GPU: {why}")
     return mod
 
@@ -100,7 +99,9 @@ def test_unavailable_in_background_before_gpu_init_says_why():
     print("\n".join(lines))
     assert out.returncode == 0, out.stderr[-2000:]
     text = "\n".join(lines)
-    assert "AVAILABLE False" in text and "background mode" in text
+    # Blender's own reason: "... not available in background mode" (4.2-5.2), "... requires the
+    # gpu module to be initialized. See gpu.init." (5.3)
+    assert "AVAILABLE False" in text and ("background mode" in text or "gpu.init" in text)
     assert "SOLVER refused" in text
     assert "CHOOSE (False," in text
 
@@ -126,8 +127,10 @@ def test_supports_and_choose():
     assert "second solve" not in mod.choose("GPU", 10 ** 6, dict(axes="XYZ"), fresh=True)[1]
 
 
-def test_readback_matches_to_list_and_is_fast(gb):
-    """The read-back trap (docs/design.md, "The GPU dispatch plan"): our flattened zero-copy read equals Buffer.to_list()."""
+def test_readback_matches_to_list_and_is_zero_copy(gb):
+    """The read-back trap (docs/design.md, "The GPU dispatch plan"): our flattened zero-copy read
+    equals Buffer.to_list(). Zero-copy is checked by structure, not by a clock: the array is a
+    view of Blender's buffer (a per-texel Python loop or a copy would own its data)."""
     rng = np.random.default_rng(3)
     for channels, n in ((4, gb.TW * 3 + 17), (1, gb.TW * 2 + 5), (2, 1000)):
         data = rng.normal(size=(n, channels)).astype(np.float32)
@@ -137,12 +140,9 @@ def test_readback_matches_to_list_and_is_fast(gb):
         np.testing.assert_array_equal(got, ref)
         np.testing.assert_array_equal(got, data)
     big = gb.make_texture(rng.normal(size=(gb.TW * 256, 4)).astype(np.float32), 4)
-    t = time.perf_counter()
     arr = gb.read_texture(big, gb.TW * 256, 4)
-    seconds = time.perf_counter() - t
     assert arr.shape == (gb.TW * 256, 4)
-    print(f"read-back of {arr.nbytes / 2 ** 20:.0f} MiB: {1000 * seconds:.1f} ms")
-    assert seconds < 1.0   # 16 MiB; a per-texel Python loop takes tens of seconds
+    assert not arr.flags.owndata and arr.base is not None
 
 
 def _two_islands():
@@ -152,7 +152,7 @@ def _two_islands():
 
 
 def _case(name):
-    rng = np.random.default_rng(abs(hash(name)) % 2 ** 32)
+    rng = np.random.default_rng(zlib.crc32(name.encode()))   # stable across processes
     influence = None
     if name == "icosphere-bspline":
         v, f = vp.icosphere(3, 0.42)

@@ -72,6 +72,9 @@ def test_regression_apply_with_modifier_off(ext):
     ob.vpffd.enabled = False
     shown = _evaluated_co(ob)
     result, error = _op("vpffd_apply", ob)
+    # The two outcomes the operator allows: it writes what is shown, or it refuses with a
+    # VP-FFD message (a raise inside it is "EXCEPTION" and fails here).
+    assert result in ({"FINISHED"}, "ERROR"), (result, error)
     if result == {"FINISHED"}:
         assert np.abs(_co(ob.data) - shown).max() <= 1e-6, "Apply wrote a shape that was not shown"
 
@@ -88,10 +91,16 @@ def test_regression_flat_lattice_blowup_in_blender(ext):
     lat.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
     bpy.context.scene.frame_set(1)
     info = _engine().stats(ob)
-    if info.get("error") or info.get("warnings"):
-        return
-    assert abs(_measured_percent(ob) - info["volume_percent"]) <= 0.01, (
-        f"reported {info['volume_percent']}%, measured {_measured_percent(ob)}%")
+    measured = _measured_percent(ob)
+    assert np.isfinite(_evaluated_co(ob)).all()
+    said = " ".join([info.get("error") or ""] + list(info.get("warnings") or ()))
+    if "mirrors space" in said:   # what this lattice does: the size of the volume is kept
+        measured = abs(measured)
+    else:
+        assert not said, said
+    assert info["volume_percent"] is not None
+    assert abs(measured - info["volume_percent"]) <= 1e-3, (
+        f"reported {info['volume_percent']}%, measured {measured}%")
 
 
 def test_regression_failed_bind_changes_weights(ext):
@@ -137,8 +146,9 @@ def test_regression_linked_duplicate_of_bound_mesh(ext):
     twin.location = (0.6, 0.0, 0.3)
     bpy.context.scene.frame_set(1)
     eng = _engine()
-    if any("shared" in (eng.stats(o).get("error") or "") for o in (ob, twin)):
-        return
+    # Each object solves for its own placement (an error on the shared mesh was the other fix
+    # allowed, and is not what VP-FFD does: the solver helper is per object).
+    assert [eng.stats(o).get("error") for o in (ob, twin)] == [None, None]
     err = float(np.abs(_evaluated_co(ob) - alone).max())
     assert err <= 1e-6, f"the original's shape changed by {err:.3g} when its duplicate moved"
 

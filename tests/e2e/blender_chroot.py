@@ -1,7 +1,10 @@
-"""Run Debian's real `blender` binary (trixie: Blender 4.3.2) inside a debootstrap chroot.
+"""Run Debian's real `blender` binary inside a debootstrap chroot: the newest Blender that Debian
+packages (sid: 5.2.2 with Python 3.14 and NumPy 2.4, at the time of writing), or trixie's 4.3.2.
 
-Standard library only. The chroot is made by `make_blender_chroot.sh` (about 70 s and ~1.4 GB the
-first time, then reused). No mounts are needed: `chroot DIR blender -b ...` works with the
+Standard library only. The chroot is made by `make_blender_chroot.sh` (about 70 s and ~1.2 GB the
+first time, then reused). Which Debian suite: $VPFFD_DEBIAN_SUITE, by default sid; sid is Debian's
+moving development suite and can fail to install any day, so when the default fails the tests fall
+back to trixie and say so (`describe()` names the Blender that runs). No mounts are needed: `chroot DIR blender -b ...` works with the
 chroot's empty /proc and /sys, so there is nothing to unmount after a run.
 
 Every run gets a work folder inside the chroot (`DIR/tmp/vpffd-e2e-XXXX`, seen as
@@ -31,6 +34,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO_ROOT = os.path.dirname(os.path.dirname(HERE))
 SCRIPT = os.path.join(HERE, "make_blender_chroot.sh")
 ENV_VAR = "VPFFD_BLENDER_CHROOT"
+SUITE_VAR = "VPFFD_DEBIAN_SUITE"
+DEFAULT_SUITE = "sid"
+FALLBACK_SUITE = "trixie"
 
 # Exit codes of make_blender_chroot.sh that mean "this machine cannot make a chroot at all".
 _EXIT_NOT_ROOT = 3
@@ -41,9 +47,27 @@ class ChrootUnavailable(RuntimeError):
     """The chroot cannot be made on this machine at all: not root, or no installable debootstrap."""
 
 
+def _suite_dir(suite):
+    return os.path.join(REPO_ROOT, ".cache", "blender-" + suite)
+
+
+def _has_blender(root):
+    return os.path.isfile(os.path.join(root, "usr", "bin", "blender"))
+
+
+def _suites():
+    """The suites to try, in order: the one asked for, or sid and then trixie."""
+    asked = os.environ.get(SUITE_VAR)
+    return [asked] if asked else [DEFAULT_SUITE, FALLBACK_SUITE]
+
+
 def chroot_dir():
-    """Where the chroot lives: $VPFFD_BLENDER_CHROOT, else <repo>/.cache/blender-trixie."""
-    path = os.environ.get(ENV_VAR) or os.path.join(REPO_ROOT, ".cache", "blender-trixie")
+    """Where the chroot lives: $VPFFD_BLENDER_CHROOT, else <repo>/.cache/blender-SUITE for the
+    first suite (see _suites) whose chroot holds a blender, else for the first suite."""
+    path = os.environ.get(ENV_VAR)
+    if not path:
+        dirs = [_suite_dir(s) for s in _suites()]
+        path = next((d for d in dirs if _has_blender(d)), dirs[0])
     return os.path.abspath(path)
 
 
@@ -54,11 +78,11 @@ def _chroot_cmd():
 def ensure_chroot(timeout=1800):
     """Make (or reuse) the chroot and return its path.
 
-    Raises ChrootUnavailable (a RuntimeError) when this machine cannot make one (not root, or
-    debootstrap missing and not installable), RuntimeError for any other failure, with the tail
-    of the script's log in the message.
+    With neither $VPFFD_BLENDER_CHROOT nor $VPFFD_DEBIAN_SUITE set, sid is tried first and trixie
+    when sid cannot be installed (printed, with sid's error). Raises ChrootUnavailable (a
+    RuntimeError) when this machine cannot make one (not root, or debootstrap missing and not
+    installable), RuntimeError for any other failure, with the tail of the script's log.
     """
-    root = chroot_dir()
     if os.name != "posix" or not hasattr(os, "geteuid"):
         raise ChrootUnavailable("a debootstrap chroot needs Linux")
     if os.geteuid() != 0:
@@ -66,10 +90,30 @@ def ensure_chroot(timeout=1800):
                                 % os.geteuid())
     if _chroot_cmd() is None:
         raise ChrootUnavailable("the 'chroot' command is not available")
+    if os.environ.get(ENV_VAR):
+        return _make(os.path.abspath(os.environ[ENV_VAR]), None, timeout)
+    suites = _suites()
+    for i, suite in enumerate(suites):
+        try:
+            return _make(_suite_dir(suite), suite, timeout)
+        except ChrootUnavailable:
+            raise
+        except RuntimeError as exc:
+            if i + 1 == len(suites):
+                raise
+            print("blender_chroot: Debian %s's blender could not be installed; falling back to %s.\n%s"
+                  % (suite, suites[i + 1], exc))
+    raise AssertionError("unreachable")
+
+
+def _make(root, suite, timeout):
+    env = dict(os.environ)
+    if suite:
+        env[SUITE_VAR] = suite
     try:
         proc = subprocess.run(["bash", SCRIPT, root], stdin=subprocess.DEVNULL,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True, timeout=timeout)
+                              text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired as exc:
         raise RuntimeError("make_blender_chroot.sh %s timed out after %ss" % (root, timeout)) from exc
     log = (proc.stdout + proc.stderr).strip()
@@ -82,6 +126,29 @@ def ensure_chroot(timeout=1800):
     if log:
         print(log)
     return root
+
+
+_described = {}
+
+
+def describe():
+    """'Blender X.Y.Z (Debian SUITE, Python A.B, NumPy C.D)' of the chroot in use (cached).
+    Call after ensure_chroot()."""
+    root = chroot_dir()
+    if root not in _described:
+        rc, out, err, work = run_blender(
+            ["-b", "--factory-startup", "--python-expr",
+             "import bpy, sys, numpy; print('VPFFD_DESCRIBE', bpy.app.version_string, '|', "
+             "sys.version.split()[0], '|', numpy.__version__)"], timeout=300)
+        remove_workdir(work)
+        line = next((ln for ln in out.splitlines() if ln.startswith("VPFFD_DESCRIBE ")), None)
+        if line is None:
+            raise RuntimeError("the chroot's blender did not start (exit %s):\n%s" % (rc, err[-2000:]))
+        version, py, npy = (p.strip() for p in line[len("VPFFD_DESCRIBE "):].split("|"))
+        suite = os.path.basename(root)[len("blender-"):] if os.path.basename(root).startswith("blender-") else root
+        _described[root] = {"version": version, "suite": suite, "python": py, "numpy": npy,
+                            "text": "Blender %s (Debian %s, Python %s, NumPy %s)" % (version, suite, py, npy)}
+    return _described[root]
 
 
 def _inside(root, host_path):

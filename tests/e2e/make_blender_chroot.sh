@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
 # make_blender_chroot.sh DIR
 #
-# Create (or reuse) a minimal Debian trixie chroot in DIR that holds Debian's real `blender`
-# binary (4.3.2), python3-numpy and Mesa's software OpenGL/EGL (llvmpipe), for the end-to-end
-# test in tests/e2e/. Idempotent: if DIR/usr/bin/blender already starts, nothing is done.
+# Create (or reuse) a minimal Debian chroot in DIR that holds Debian's real `blender` binary
+# (sid: 5.2.2 on Python 3.14; trixie: 4.3.2 on Python 3.13), python3-numpy, Mesa's software
+# OpenGL/EGL (llvmpipe), and pytest with hypothesis for the core's tests on Debian's Python, for
+# tests/e2e/. Idempotent: if DIR/usr/bin/blender already starts, nothing is done.
 #
-#   debootstrap --variant=minbase trixie DIR
+#   debootstrap --variant=minbase SUITE DIR
 #   chroot DIR apt-get install --no-install-recommends blender python3-numpy \
-#       libgl1-mesa-dri libegl-mesa0 libegl1
+#       libgl1-mesa-dri libegl-mesa0 libegl1 python3-pytest python3-hypothesis
 #
 # Needs root and a Debian-like host with apt-get (debootstrap is installed with apt-get if it is
 # missing). No mounts are needed afterwards: `chroot DIR blender -b ...` runs with an empty /proc
@@ -15,14 +16,14 @@
 # be unmounted. debootstrap mounts /proc and /sys itself while it runs and unmounts them on exit.
 #
 # Environment: VPFFD_DEBIAN_MIRROR (default http://deb.debian.org/debian),
-#              VPFFD_DEBIAN_SUITE  (default trixie).
+#              VPFFD_DEBIAN_SUITE  (default sid; trixie is the stable fallback).
 # Exit codes: 0 ok; 1 failure; 2 usage; 3 not root; 4 debootstrap missing and not installable.
-# Progress goes to stderr. About 70 s, ~320 MB downloaded, ~1.4 GB on disk.
+# Progress goes to stderr. About 70 s, ~300 MB downloaded, ~1.2 GB on disk.
 set -euo pipefail
 
-SUITE="${VPFFD_DEBIAN_SUITE:-trixie}"
+SUITE="${VPFFD_DEBIAN_SUITE:-sid}"
 MIRROR="${VPFFD_DEBIAN_MIRROR:-http://deb.debian.org/debian}"
-PACKAGES=(blender python3-numpy libgl1-mesa-dri libegl-mesa0 libegl1)
+PACKAGES=(blender python3-numpy libgl1-mesa-dri libegl-mesa0 libegl1 python3-pytest python3-hypothesis)
 MARKER=".vpffd-blender-chroot"
 export PATH="/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin:${PATH:-}"
 
@@ -67,6 +68,13 @@ if ! flock -n 9; then
 fi
 
 if version=$(blender_works); then
+    if [ ! -x "$DIR/usr/bin/pytest-3" ]; then   # a chroot made before the core tests ran in it
+        log "adding python3-pytest and python3-hypothesis to $DIR ..."
+        { in_chroot apt-get update -q && in_chroot apt-get install -y -q --no-install-recommends \
+              python3-pytest python3-hypothesis && in_chroot apt-get clean; } >&2 ||
+            die 1 "apt-get inside the chroot failed"
+        rm -rf "$DIR"/var/lib/apt/lists/* "$DIR"/var/cache/apt/*.bin
+    fi
     log "reusing $DIR (Blender $version)"
     exit 0
 fi

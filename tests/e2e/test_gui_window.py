@@ -1,4 +1,4 @@
-"""What a user does in Blender's real window: Debian's `blender` 4.3.2 (the e2e chroot) opens its
+"""What a user does in Blender's real window: Debian's `blender` (the e2e chroot: sid's newest, or trixie's) opens its
 GUI on a virtual display (Xvfb) and `gui_session.py` drives it from timers with operators in the
 window's own context: Add > VP-FFD Demos, playback (`screen.animation_play`), the lattice's Edit
 Mode with `transform.resize`, `ed.undo`/`ed.redo`, Ctrl+A (`object.modifier_apply`), Delete

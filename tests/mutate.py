@@ -1,0 +1,96 @@
+"""Break the product on purpose and show that the test suite goes red (`./dev mutate`).
+
+Each mutation edits one line of a copy of the repository (the working tree is never touched),
+runs a slice of the suite there with the newest Blender's environment (.venv), the strict skip
+policy on, and expects pytest to fail. The slices are the tests that should catch the breakage;
+the whole suite contains them, so a red slice means a red `./dev test`. See docs/testing.md.
+
+    python -m tests.mutate [NAME ...]     (default: every mutation)
+
+Exit status 0 when every mutation was caught, 1 when one survived (the suite let it through).
+"""
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# name: (file, the exact text to replace, its replacement, pytest arguments, extra environment)
+MUTATIONS = {
+    "volume-target-bias": (
+        "vpffd_addon/solve.py",
+        "        self.targets = targets                      # (k,)",
+        "        self.targets = targets * (1 + 5e-5)         # (k,)",
+        ["-m", "core", "tests/test_core_reference.py", "tests/test_core_properties.py"], {}),
+    "apply-raises": (
+        "operators/engine.py",
+        '    shape keys."""\n    mesh = obj.data\n',
+        '    shape keys."""\n    raise RuntimeError("mutation: Apply is broken")\n',
+        ["tests/test_regressions_blender.py", "tests/test_extension_blender.py"], {}),
+    "gpu-kernel-invalid": (
+        "operators/gpu_backend.py",
+        "int global_index() { return",
+        "int global_index() { this is not GLSL; return",
+        ["tests/test_gpu_backend.py"], {}),
+    "bpy-missing": (
+        None, None, None,
+        ["tests/test_stack_blender.py"], {"PYTHONPATH": "{stub}"}),
+}
+
+
+def _copy(dst):
+    names = subprocess.run(["git", "-C", ROOT, "ls-files", "-co", "--exclude-standard", "-z"],
+                           stdout=subprocess.PIPE, check=True).stdout.decode().split("\0")
+    for name in filter(None, names):
+        src = os.path.join(ROOT, name)
+        if os.path.isfile(src):
+            os.makedirs(os.path.dirname(os.path.join(dst, name)), exist_ok=True)
+            shutil.copy2(src, os.path.join(dst, name))
+
+
+def run(name, python):
+    path, old, new, args, env = MUTATIONS[name]
+    with tempfile.TemporaryDirectory(prefix=f"vpffd-mutate-{name}-") as work:
+        _copy(work)
+        if path is not None:
+            target = os.path.join(work, path)
+            text = open(target, encoding="utf-8").read()
+            if text.count(old) != 1:
+                raise SystemExit(f"mutate: {name}: the text to replace is not in {path} exactly once "
+                                 "(update tests/mutate.py)")
+            with open(target, "w", encoding="utf-8") as fh:
+                fh.write(text.replace(old, new))
+        stub = os.path.join(work, ".stub")
+        os.makedirs(stub)
+        with open(os.path.join(stub, "bpy.py"), "w") as fh:   # bpy missing (as pip failing leaves it)
+            fh.write("raise ModuleNotFoundError(\"No module named 'bpy'\", name='bpy')\n")
+        full_env = dict(os.environ, VPFFD_STRICT_SKIPS="1", VPFFD_PASS=f"mutation {name}",
+                        VPFFD_NO_E2E="1")
+        full_env.update({k: v.format(stub=stub) for k, v in env.items()})
+        t0 = time.time()
+        proc = subprocess.run([python, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider"] + args,
+                              cwd=work, env=full_env, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+        tail = [ln for ln in proc.stdout.splitlines() if ln.strip()][-3:]
+        caught = proc.returncode not in (0, 5)
+        print(f"mutate: {name}: {'CAUGHT' if caught else 'SURVIVED'} (pytest exit "
+              f"{proc.returncode}, {time.time() - t0:.0f} s): " + " | ".join(tail))
+        return caught
+
+
+def main(argv):
+    names = argv or list(MUTATIONS)
+    unknown = [n for n in names if n not in MUTATIONS]
+    if unknown:
+        raise SystemExit(f"mutate: unknown mutation(s) {unknown}; known: {list(MUTATIONS)}")
+    survived = [n for n in names if not run(n, sys.executable)]
+    print(f"mutate: {len(names) - len(survived)} of {len(names)} mutations caught"
+          + (f"; survived: {survived}" if survived else ""))
+    return 1 if survived else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

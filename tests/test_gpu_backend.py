@@ -127,6 +127,24 @@ def test_supports_and_choose():
     assert "second solve" not in mod.choose("GPU", 10 ** 6, dict(axes="XYZ"), fresh=True)[1]
 
 
+def test_auto_takes_the_gpu_on_a_hardware_renderer_from_50000_vertices(gb, monkeypatch):
+    """The README's claim for Auto's positive branch. Only the cost model's input is faked: the
+    renderer's name (this machine renders with Mesa's llvmpipe); availability, the kernels and the
+    options check are real."""
+    monkeypatch.setattr(gb, "renderer", lambda: "NVIDIA H200/PCIe/SSE2")
+    assert not gb.is_software_renderer()
+    ok, why = gb.choose("AUTO", gb.AUTO_MIN_VERTS, dict(axes="XYZ"))
+    assert ok, why
+    assert "NVIDIA" in why
+    ok, why = gb.choose("AUTO", gb.AUTO_MIN_VERTS - 1, dict(axes="XYZ"))
+    assert not ok and "faster on the CPU" in why
+    ok, why = gb.choose("AUTO", 10 * gb.AUTO_MIN_VERTS, dict(axes="XYZ"), fresh=True)
+    assert not ok and "second solve" in why
+    monkeypatch.setattr(gb, "renderer", lambda: "llvmpipe (LLVM 22.1.8, 256 bits)")
+    ok, why = gb.choose("AUTO", 10 * gb.AUTO_MIN_VERTS, dict(axes="XYZ"))
+    assert not ok and "software OpenGL" in why
+
+
 def test_readback_matches_to_list_and_is_zero_copy(gb):
     """The read-back trap (docs/design.md, "The GPU dispatch plan"): our flattened zero-copy read
     equals Buffer.to_list(). Zero-copy is checked by structure, not by a clock: the array is a

@@ -23,7 +23,12 @@ set -euo pipefail
 
 SUITE="${VPFFD_DEBIAN_SUITE:-sid}"
 MIRROR="${VPFFD_DEBIAN_MIRROR:-http://deb.debian.org/debian}"
-PACKAGES=(blender python3-numpy libgl1-mesa-dri libegl-mesa0 libegl1 python3-pytest python3-hypothesis)
+# Blender; Mesa's OpenGL (libgl1, libopengl0: without them sid's Blender 5.2 finds no OpenGL) and
+# Vulkan (lavapipe) software drivers, for both GPU backends; python3-cattr and python3-requests,
+# which Blender's own extension add-on imports at start (Debian's package does not pull them in);
+# pytest and hypothesis for the core's tests on Debian's Python.
+PACKAGES=(blender python3-numpy libgl1-mesa-dri libegl-mesa0 libegl1 libgl1 libopengl0 libglx-mesa0
+          mesa-vulkan-drivers libvulkan1 python3-cattr python3-requests python3-pytest python3-hypothesis)
 MARKER=".vpffd-blender-chroot"
 export PATH="/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin:${PATH:-}"
 
@@ -68,11 +73,15 @@ if ! flock -n 9; then
 fi
 
 if version=$(blender_works); then
-    if [ ! -x "$DIR/usr/bin/pytest-3" ]; then   # a chroot made before the core tests ran in it
-        log "adding python3-pytest and python3-hypothesis to $DIR ..."
+    missing=()   # a chroot made before a package joined PACKAGES gets it now
+    for pkg in "${PACKAGES[@]}"; do
+        in_chroot dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" ||
+            missing+=("$pkg")
+    done
+    if [ "${#missing[@]}" -gt 0 ]; then
+        log "adding ${missing[*]} to $DIR ..."
         { in_chroot apt-get update -q && in_chroot apt-get install -y -q --no-install-recommends \
-              python3-pytest python3-hypothesis && in_chroot apt-get clean; } >&2 ||
-            die 1 "apt-get inside the chroot failed"
+              "${missing[@]}" && in_chroot apt-get clean; } >&2 || die 1 "apt-get inside the chroot failed"
         rm -rf "$DIR"/var/lib/apt/lists/* "$DIR"/var/cache/apt/*.bin
     fi
     log "reusing $DIR (Blender $version)"

@@ -345,9 +345,48 @@ def _render_all(work, scripts):
             assert os.path.isfile(png), "%s: frame %d not rendered: %s" % (run, frame, out[-2000:])
             images[run, frame] = _read(png)
             assert images[run, frame][:8] == b"\x89PNG\r\n\x1a\n", (run, frame)
-    return dict(coords=coords, images=images, scene=scene,
+    noext = _render_without_extension(work)
+    return dict(coords=coords, images=images, scene=scene, noext=noext,
                 rest=np.fromfile(os.path.join(measure, "rest_coords.f32"), np.float32),
                 tris=np.fromfile(os.path.join(measure, "tris.i32"), np.int32))
+
+
+NOEXT_FRAMES = (3, SAVED_FRAME)
+
+
+def _render_without_extension(work):
+    """Render NOEXT_FRAMES of the saved scene in a fresh work folder whose Blender has no VP-FFD
+    installed (a render worker someone forgot): (exit status, output, {frame: float32 bytes})."""
+    bare = bc.new_workdir()
+    try:
+        bc.copy_files({"scene.blend": os.path.join(work, "scene.blend"),
+                       "record.py": os.path.join(work, "record.py")}, bare)
+        rc, out, err, _ = bc.run_blender(
+            ["-b", "scene.blend", "--python-exit-code", "1", "--python", "record.py",
+             "-o", "//out_noext/f_####", "-f", ",".join(str(f) for f in NOEXT_FRAMES)],
+            workdir=bare, env={"VPFFD_RUN": "noext"}, timeout=300)
+        coords = {f: _read(os.path.join(bare, "measure", "noext", "coords_%04d.f32" % f))
+                  for f in NOEXT_FRAMES
+                  if os.path.isfile(os.path.join(bare, "measure", "noext", "coords_%04d.f32" % f))}
+        return rc, out + err, coords
+    finally:
+        bc.remove_workdir(bare)
+
+
+@pytest.mark.e2e
+def test_a_worker_without_the_extension_renders_stale_offsets_and_exits_0(renders):
+    """The README's warning about render farms, as it happens: no error, exit status 0, nothing
+    about VP-FFD in the output, and every frame gets the offsets saved with the file (right on
+    the saved frame, wrong on the others)."""
+    rc, out, coords = renders["noext"]
+    assert rc == 0, out[-3000:]
+    assert "VP-FFD" not in out, out[-3000:]
+    assert sorted(coords) == sorted(NOEXT_FRAMES), out[-3000:]
+    size = float(np.ptp(renders["rest"].reshape(-1, 3), 0).max())
+    ref = {f: np.frombuffer(renders["coords"]["single", f], np.float32) for f in NOEXT_FRAMES}
+    got = {f: np.frombuffer(coords[f], np.float32) for f in NOEXT_FRAMES}
+    assert np.abs(got[SAVED_FRAME] - ref[SAVED_FRAME]).max() <= 1e-5 * size
+    assert np.abs(got[3] - ref[3]).max() > 1e-2 * size, "frame 3 shows the live solve"
 
 
 @pytest.mark.e2e

@@ -35,6 +35,11 @@ MUTATIONS = {
         "int global_index() { return",
         "int global_index() { this is not GLSL; return",
         ["tests/test_gpu_backend.py"], {}),
+    "bake-esc-ignored": (
+        "operators/bake.py",
+        '        if event.type == "ESC" and event.value == "PRESS":',
+        '        if event.type == "NONE_SUCH" and event.value == "PRESS":',
+        ["tests/e2e/test_gui_window.py"], {"VPFFD_NO_E2E": ""}),
     "bpy-missing": (
         None, None, None,
         ["tests/test_stack_blender.py"], {"PYTHONPATH": "{stub}"}),
@@ -70,6 +75,9 @@ def run(name, python):
         full_env = dict(os.environ, VPFFD_STRICT_SKIPS="1", VPFFD_PASS=f"mutation {name}",
                         VPFFD_NO_E2E="1")
         full_env.update({k: v.format(stub=stub) for k, v in env.items()})
+        from tests.e2e import blender_chroot as bc      # the copy reuses this tree's chroot
+        if bc._has_blender(bc.chroot_dir()):
+            full_env.setdefault("VPFFD_BLENDER_CHROOT", bc.chroot_dir())
         t0 = time.time()
         proc = subprocess.run([python, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider"] + args,
                               cwd=work, env=full_env, stdout=subprocess.PIPE,

@@ -121,6 +121,17 @@ def screenshot(name):
     check(f"screenshot {name}", os.path.exists(done))
 
 
+def press(key):
+    """Ask the host to press `key` (an X keysym, e.g. Escape) on the display with xdotool: a real
+    key event through the X server and Blender's own event queue. Waits until it was sent."""
+    request = os.path.join(OUT, f"key-{key}.request")
+    open(request, "w").close()
+    t0 = time.time()
+    while os.path.exists(request) and time.time() - t0 < 60:
+        yield 0.1
+    check(f"key {key} pressed", not os.path.exists(request))
+
+
 def session():
     eng = engine()
     prefs = bpy.context.preferences
@@ -276,6 +287,37 @@ def session():
     while not os.path.exists(path) and time.time() - t0 < 120:
         yield 0.5
     check("the bake finishes in the window", os.path.exists(path))
+
+    # Esc cancels a bake in progress: a long range, a real Escape key press once the bake has
+    # stepped through a few frames; nothing is written, the live solve stays, the frame returns.
+    with bpy.context.temp_override(**window_context(), object=tube, active_object=tube):
+        bpy.ops.object.vpffd_use_live("EXEC_DEFAULT")
+    yield 0.5
+    scene = bpy.context.window_manager.windows[0].scene      # the demo made a scene of its own
+    scene.frame_set(1)
+    yield 0.3
+    path = os.path.join(OUT, "tube-cancelled.pc2")
+    with bpy.context.temp_override(**window_context(), object=tube, active_object=tube):
+        started = bpy.ops.object.vpffd_bake("EXEC_DEFAULT", filepath=path, frame_start=1,
+                                            frame_end=5000)
+    check("a long bake starts as a modal operator", started == {"RUNNING_MODAL"}, started)
+    frames = set()
+    t0 = time.time()
+    while len(frames) < 4 and time.time() - t0 < 120:
+        yield 0.05
+        frames.add(scene.frame_current)
+    check("the bake steps through frames in the window", len(frames) >= 4, sorted(frames))
+    yield from press("Escape")
+    yield 1.0
+    moved_after = scene.frame_current
+    yield 1.0
+    check("Esc stopped the bake (the frame no longer advances)", scene.frame_current == moved_after,
+          (moved_after, scene.frame_current))
+    leftovers = [n for n in os.listdir(OUT) if n.startswith("tube-cancelled")]
+    check("a cancelled bake writes nothing", not leftovers, leftovers)
+    check("after Esc the tube still solves live (no cache switched in)",
+          [m.type for m in tube.modifiers if m.show_viewport][-1] == "NODES",
+          [(m.name, m.type, m.show_viewport) for m in tube.modifiers])
 
 
 def main():

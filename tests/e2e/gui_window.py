@@ -2,11 +2,13 @@
 
     results, shots = run_session(out_dir)     # runs gui_session.py in the window
 
-Xvfb and xwd (Debian's `xvfb`, `x11-apps`) are installed with apt-get when missing. The chroot's
+Xvfb, xwd and xdotool (Debian's `xvfb`, `x11-apps`, `xdotool`) are installed with apt-get when
+missing. The chroot's
 Blender reaches the host's Xvfb through X's abstract socket, so no mounts are needed. Screenshots
 are taken on the host with `xwd -root` when the session asks for one (a `shot-NAME.request` file)
 and written as PNG (`shot-NAME.png`); Blender's own screenshot operator reads a black front buffer
-under Xvfb. Standard library, NumPy and Pillow only.
+under Xvfb. A key press asked for with a `key-KEYSYM.request` file is sent with `xdotool key`, a real
+X event that reaches Blender's own event queue. Standard library, NumPy and Pillow only.
 """
 import json
 import os
@@ -29,7 +31,8 @@ class DisplayUnavailable(RuntimeError):
 
 
 def _ensure_tools():
-    missing = [pkg for tool, pkg in (("Xvfb", "xvfb"), ("xwd", "x11-apps")) if shutil.which(tool) is None]
+    missing = [pkg for tool, pkg in (("Xvfb", "xvfb"), ("xwd", "x11-apps"), ("xdotool", "xdotool"))
+               if shutil.which(tool) is None]
     if not missing:
         return
     if shutil.which("apt-get") is None or os.geteuid() != 0:
@@ -121,7 +124,13 @@ def run_session(timeout=600, keep=False):
             t0 = time.time()
             while proc.poll() is None and time.time() - t0 < timeout:
                 for name in sorted(os.listdir(out)):
-                    if name.endswith(".request"):
+                    if name.startswith("key-") and name.endswith(".request"):
+                        # Focus follows the pointer without a window manager: point at Blender.
+                        key = name[len("key-"):-len(".request")]
+                        subprocess.run(["xdotool", "mousemove", str(SCREEN[0] // 2), str(SCREEN[1] // 2),
+                                        "key", key], env=dict(os.environ, DISPLAY=display), check=True)
+                        os.remove(os.path.join(out, name))
+                    elif name.endswith(".request"):
                         shot = name[len("shot-"):-len(".request")]
                         png = os.path.join(out, f"shot-{shot}.png")
                         time.sleep(0.3)              # let the window finish its redraw

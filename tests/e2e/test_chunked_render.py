@@ -174,7 +174,12 @@ assert res == {"FINISHED"}, res
 for frame, value in ((1, 1.0), (7, 1.3), (15, 0.8), (24, 1.15)):
     sphere.vpffd.volume_scale = value
     sphere.keyframe_insert('vpffd.volume_scale', frame=frame)
-fc = sphere.animation_data.action.fcurves.find('vpffd.volume_scale')
+action = sphere.animation_data.action
+if hasattr(action, "fcurves"):        # Blender before 5.0
+    fc = action.fcurves.find('vpffd.volume_scale')
+else:                                 # slotted actions: the F-curves live in a channel bag
+    fc = next(c for layer in action.layers for strip in layer.strips for bag in strip.channelbags
+              for c in bag.fcurves if c.data_path == 'vpffd.volume_scale')
 assert fc is not None
 volume_scale = {str(f): fc.evaluate(f) for f in range(1, 25)}
 

@@ -397,6 +397,17 @@ def update(obj, depsgraph, force=False):
         return _update(obj, depsgraph, force)
 
 
+def _evaluated_here(obj, depsgraph):
+    """Whether `depsgraph` evaluates `obj` at all: visible in its view layer (the viewport), or
+    enabled for renders (a render evaluates what renders)."""
+    try:
+        if depsgraph.mode == "RENDER":
+            return not obj.hide_render
+        return bool(obj.visible_get(view_layer=depsgraph.view_layer))
+    except (ReferenceError, RuntimeError, TypeError):
+        return True
+
+
 def _update(obj, depsgraph, force, helpers_taken=None):
     s = obj.vpffd
     uid = obj.session_uid
@@ -419,6 +430,13 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             return False  # switched off for this evaluation, like any modifier
         if obj.mode == "EDIT":
             _pause(obj, paused="the mesh is in Edit Mode: VP-FFD solves again when you leave it")
+            return False
+        if not force and not _evaluated_here(obj, depsgraph):
+            # Hidden (H, Disable in Viewports, a hidden or excluded collection): Blender does not
+            # evaluate it, so nothing reaches the slot. Keep the offsets shown last and solve
+            # again when it is shown: it comes back as it was, with no error.
+            if depsgraph.mode != "RENDER":
+                _pause(obj, paused="the object is hidden: VP-FFD solves again when it is shown")
             return False
         state = _cache.get(uid)
         if state is None:
@@ -462,6 +480,7 @@ def _update(obj, depsgraph, force, helpers_taken=None):
                 _set_stats(obj, error="the VP-FFD modifier is switched off: switch it on to solve")
                 return False
             _zero_offsets(obj, state)   # a defined result: whatever reaches the slot, undeformed
+            state.signature = None      # solve again once something reaches it
             _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
                                   "Geometry Nodes modifier after it drops instances or point clouds?)")
             return False

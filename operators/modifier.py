@@ -245,6 +245,19 @@ def _build(ng):
         node.location = (x, y)
     ng[_TAG] = _VERSION
     ng[_KIND] = kind
+    _hide_inputs(ng)
+
+
+def _hide_inputs(ng):
+    """Show none of the group's inputs in the modifier: VP-FFD's panel sets them all, and a second,
+    editable Lattice or Solver field there could only break the binding. Changes a group in place
+    (an older file's group keeps its sockets, so its modifiers keep their values)."""
+    if ng.library is not None:
+        return
+    for item in ng.interface.items_tree:
+        if (getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"
+                and not getattr(item, "hide_in_modifier", True)):
+            item.hide_in_modifier = True
 
 
 def _current(ng):
@@ -258,6 +271,7 @@ def offset_node_group():
         if ng.get(_TAG):
             if not _current(ng) and ng.library is None:
                 _build(ng)
+            _hide_inputs(ng)
             return ng
     ng = bpy.data.node_groups.new(NODE_GROUP_NAME, "GeometryNodeTree")
     _build(ng)
@@ -332,6 +346,9 @@ def ensure(obj):
         mod = obj.modifiers.new(MODIFIER_NAME, "NODES")
     if mod.node_group is None or not _current(mod.node_group):
         mod.node_group = offset_node_group()
+    _hide_inputs(mod.node_group)
+    if getattr(mod, "show_group_selector", False):
+        mod.show_group_selector = False     # the node group is VP-FFD's own, not to be swapped
     helper(obj, mod)
     sync_inputs(obj, mod)
     return mod

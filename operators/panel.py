@@ -67,7 +67,7 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
         row.prop(s, "invert_vertex_group", text="", icon="ARROW_LEFTRIGHT")
         col.prop(s, "strength", slider=True)
         if s.is_bound and modifier.find(ob) is not None and not bake.using_cache(ob):
-            col.prop(s, "enabled")     # on the cache, "Use Live" switches back instead
+            col.prop(s, "enabled")     # on the cache, "Use Live Solve" switches back instead
 
         row = layout.row(align=True)
         if s.is_bound:
@@ -191,8 +191,8 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
         layout = self.layout
         info = engine.status(ob)
         if bake.using_cache(ob):
-            message(layout, context, "playing the baked cache: VP-FFD is not solving (Use Live "
-                                     "in Bake switches back)", icon="FILE_CACHE")
+            message(layout, context, "playing the baked cache: VP-FFD is not solving (Bake > "
+                                     "Use Live Solve switches back)", icon="FILE_CACHE")
             return
         if info.switched_off:
             message(layout, context, "the VP-FFD modifier is switched off in the viewport",

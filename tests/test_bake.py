@@ -474,7 +474,11 @@ def _modal_operator(bk, baker, filepath, use_switch):
     return op, context, reports, log
 
 
-def test_modal_bake_steps_on_timer_events_and_esc_cancels(bk, tmp_path, monkeypatch):
+def test_modal_logic_with_recorded_window_calls(bk, tmp_path, monkeypatch):
+    """The modal bake's bookkeeping, frame by frame, with the events and window-manager calls
+    recorded (a stand-in context, not Blender's event loop): one frame per timer event, progress
+    numbers, the Esc branch's report. Blender's real event loop, its progress display and a real
+    Escape key press are tested in its window (tests/e2e/gui_session.py)."""
     from types import SimpleNamespace
     monkeypatch.setattr(bk, "_MODAL_BUDGET_S", 0.0)        # one frame per timer event
     ball, _ = _rig()
@@ -525,9 +529,11 @@ def test_draw_bake_offers_the_right_buttons(bk, tmp_path):
     assert drawn() == ["object.vpffd_bake", "object.vpffd_use_cache"]
 
 
-def test_status_panel_says_what_is_shown(bk, tmp_path):
-    """The Status sub-panel, drawn into a recording layout: figures while VP-FFD solves (the
-    volume as the status measured it), none while the modifier is off or the baked cache plays."""
+def test_status_panel_logic_in_a_recording_layout(bk, tmp_path):
+    """The Status sub-panel's draw(), into a recording layout (a stand-in, not Blender's UI):
+    figures while VP-FFD solves (the volume as the status measured it), none while the modifier
+    is off or the baked cache plays. The real panel is drawn and captured in Blender's window
+    (tests/e2e/gui_session.py)."""
     import importlib
     from types import SimpleNamespace
     status_panel = importlib.import_module(bk.engine.__package__ + ".panel").OBJECT_PT_vpffd_status

@@ -209,3 +209,86 @@ def test_a_file_with_an_older_node_group_is_rebuilt_when_it_loads(ext, tmp_path)
     bpy.context.scene.frame_set(bpy.context.scene.frame_current)
     assert _engine(ext).stats(ball).get("error") is None
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
+
+
+def test_the_modifier_shows_none_of_its_insides(ext, tmp_path):
+    """The VP-FFD modifier in the stack shows no input fields (Lattice, Solver, Vertex Group,
+    Invert, Tap Faces) and no node-group selector: its panel sets them, and editing them there
+    could only break the binding. A group from an older file gets its inputs hidden when bound
+    again, keeping its sockets (so its modifiers keep their values)."""
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    mod = ball.modifiers["VP-FFD"]
+    inputs = [item for item in mod.node_group.interface.items_tree
+              if getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"]
+    assert {item.name for item in inputs} >= {"Lattice", "Solver", "Vertex Group", "Tap Faces"}
+    assert all(item.hide_in_modifier for item in inputs), [(i.name, i.hide_in_modifier) for i in inputs]
+    assert mod.show_group_selector is False
+    # An older file's group, inputs shown: a Re-bind hides them in place.
+    for item in inputs:
+        item.hide_in_modifier = False
+    mod.show_group_selector = True
+    before = {item.identifier for item in inputs}
+    shown = _coords(ball)
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    mod = ball.modifiers["VP-FFD"]
+    inputs = [item for item in mod.node_group.interface.items_tree
+              if getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"]
+    assert {item.identifier for item in inputs} == before
+    assert all(item.hide_in_modifier for item in inputs) and mod.show_group_selector is False
+    bpy.context.scene.frame_set(bpy.context.scene.frame_current)
+    assert _engine(ext).stats(ball).get("error") is None
+    np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
+
+
+def _hide(ob, how, hidden):
+    if how == "eye":                                  # H / Alt+H
+        ob.hide_set(hidden)
+    elif how == "viewport":                           # Disable in Viewports
+        ob.hide_viewport = hidden
+    else:                                             # the object's collection hidden
+        coll = bpy.data.collections.get("Hideable") or bpy.data.collections.new("Hideable")
+        if coll.name not in bpy.context.scene.collection.children:
+            bpy.context.scene.collection.children.link(coll)
+        if ob.name not in coll.objects:
+            coll.objects.link(ob)
+            bpy.context.scene.collection.objects.unlink(ob)
+        bpy.context.view_layer.layer_collection.children[coll.name].hide_viewport = hidden
+    bpy.context.view_layer.update()
+
+
+@pytest.mark.parametrize("how", ["eye", "viewport", "collection"])
+def test_hide_and_unhide_bring_the_corrected_shape_back(ext, how):
+    """Hidden, Blender does not evaluate the object, so nothing reaches the slot: VP-FFD pauses
+    (no error) and keeps its offsets; shown again, the corrected shape is back exactly, also
+    after the lattice changed while it was hidden (it is solved again)."""
+    eng = _engine(ext)
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    bpy.context.scene.frame_set(1)
+    shown = _coords(ball)
+    rest = evaluated_volume(ball)
+    assert eng.stats(ball).get("error") is None
+    _hide(ball, how, True)
+    bpy.context.scene.frame_set(1)
+    assert eng.stats(ball).get("error") is None, eng.stats(ball)
+    assert "hidden" in (eng.status(ball).paused or "")
+    _hide(ball, how, False)
+    bpy.context.scene.frame_set(1)
+    assert eng.stats(ball).get("error") is None, eng.stats(ball)
+    np.testing.assert_allclose(_coords(ball), shown, rtol=0, atol=1e-6)
+    # Changed while hidden: shown again, it is the new frame's corrected shape.
+    _hide(ball, how, True)
+    co = np.empty(len(lat.data.points) * 3, np.float32)
+    lat.data.points.foreach_get("co_deform", co)
+    co = co.reshape(-1, 3)
+    co[:, 0] *= 1.3
+    lat.data.points.foreach_set("co_deform", co.ravel())
+    lat.data.update_tag()
+    bpy.context.view_layer.update()
+    _hide(ball, how, False)
+    bpy.context.view_layer.update()
+    after = _coords(ball)
+    assert np.abs(after - shown).max() > 1e-3, "the lattice change shows"
+    assert eng.stats(ball).get("error") is None, eng.stats(ball)
+    assert abs(evaluated_volume(ball) / rest - 1) <= 1e-5

@@ -57,7 +57,8 @@ def test_regression_operator_raises_with_modifier_off(ext, name, tmp_path):
     bpy.ops.wm.open_mainfile(filepath=path)
     ob = _tagged("mesh")[0]
     result, error = _op(name, ob)
-    assert result != "EXCEPTION", error
+    # It works, or it reports (a VP-FFD error); a raise inside it, or a poll that hides it, fails.
+    assert result in ({"FINISHED"}, "ERROR"), (result, error)
 
 
 def test_regression_apply_with_modifier_off(ext):

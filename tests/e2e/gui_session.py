@@ -132,6 +132,23 @@ def press(key):
     check(f"key {key} pressed", not os.path.exists(request))
 
 
+def info_log():
+    """The text of the Info editor's reports, read from the real UI: an area is switched to the
+    Info editor, its reports selected and copied (Ctrl+C there), and the clipboard read."""
+    win = bpy.context.window_manager.windows[0]
+    area = next(a for a in win.screen.areas if a.type == "DOPESHEET_EDITOR" or a.ui_type == "TIMELINE")
+    saved = area.ui_type
+    area.ui_type = "INFO"
+    try:
+        region = next(r for r in area.regions if r.type == "WINDOW")
+        with bpy.context.temp_override(window=win, screen=win.screen, area=area, region=region):
+            bpy.ops.info.select_all(action="SELECT")
+            bpy.ops.info.report_copy()
+        return bpy.context.window_manager.clipboard
+    finally:
+        area.ui_type = saved
+
+
 def session():
     eng = engine()
     prefs = bpy.context.preferences
@@ -170,6 +187,21 @@ def session():
     ball.vpffd.enabled = True
     ball.vpffd.show_overlay = False
     yield 0.5
+
+    # Hide (H) and unhide (Alt+H) on the squashed frame: the corrected shape comes back exactly,
+    # with no error.
+    _, before = ratio(ball)
+    select_only(ball)
+    op("object.hide_view_set")
+    yield 0.5
+    check("hidden: no error in the panel", eng.status(ball).error is None, eng.status(ball).error)
+    op("object.hide_view_clear")
+    yield 0.5
+    _, after = ratio(ball)
+    check("unhidden (Alt+H): the corrected shape is back", float(np.abs(after - before).max()) <= 1e-6,
+          float(np.abs(after - before).max()))
+    check("unhidden: no error in the panel", eng.status(ball).error is None, eng.status(ball).error)
+    select_only(ball)
 
     # Playback (Space): every frame shown keeps the volume.
     scene.frame_set(1)
@@ -315,6 +347,9 @@ def session():
           (moved_after, scene.frame_current))
     leftovers = [n for n in os.listdir(OUT) if n.startswith("tube-cancelled")]
     check("a cancelled bake writes nothing", not leftovers, leftovers)
+    log = info_log()
+    check("the Info log says the bake was cancelled, and that nothing was written",
+          "bake cancelled after" in log.lower() and "nothing was written" in log, log[-500:])
     check("after Esc the tube still solves live (no cache switched in)",
           [m.type for m in tube.modifiers if m.show_viewport][-1] == "NODES",
           [(m.name, m.type, m.show_viewport) for m in tube.modifiers])

@@ -166,3 +166,32 @@ def volume_gradient(verts, tris, origin=None):
         m, n = tris[:, (k + 1) % 3], tris[:, (k + 2) % 3]
         np.add.at(g, tris[:, k], np.cross(v[m], v[n]) / 6.0)
     return g
+
+
+def many_small_islands(n=40, clusters=2, spread=0.1, seed=5):
+    """(verts, tris, island (V,)) of `n` small closed bodies (alternately boxes and icospheres,
+    radius 0.015-0.04) gathered in `clusters` tight groups inside [-1, 1]^3, so that
+    several share each lattice cell, as teeth, claws and eyes do on a character."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-0.6, 0.6, (clusters, 3))
+    vs, fs, ids, n_v = [], [], [], 0
+    for i in range(n):
+        c = tuple(centres[i % clusters] + rng.uniform(-spread, spread, 3))
+        r = float(rng.uniform(0.015, 0.04))
+        v, f = vp.icosphere(1, r, center=c) if i % 2 else vp.box(2, 1.5 * r, center=c)
+        vs.append(v)
+        fs.append(f + n_v)
+        ids.append(np.full(len(v), i))
+        n_v += len(v)
+    return np.vstack(vs), np.vstack(fs), np.concatenate(ids)
+
+
+def island_volumes(verts, tris, island):
+    """(k,) float64 volume of each island about its own centre (the mean of its vertices)."""
+    verts = np.asarray(verts, np.float64)
+    face_island = island[tris[:, 0]]
+    out = []
+    for k in range(island.max() + 1):
+        c = verts[island == k].mean(0)
+        out.append(face_volume(verts, tris[face_island == k], origin=c))
+    return np.array(out)

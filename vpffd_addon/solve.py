@@ -168,6 +168,21 @@ class _State:
         """(k, N) volume coefficients (S B)^T g, one row per volume row (island)."""
         return self.k.transpose(g, *self._rows)
 
+    def _note_plain(self, volumes):
+        """Keep the plain deformation's volumes. The target is on the volume's magnitude: where
+        the lattice mirrors space (the plain deformation turns a volume's sign), the mirrored
+        shape keeps its size instead of being turned inside out to reach the rest volume's sign."""
+        self.plain = volumes.copy()
+        flip = (np.sign(volumes) * np.sign(self.targets)) < 0
+        self.targets[flip] *= -1.0
+        self.mirrored = bool(flip.any())
+
+    def start(self, e):
+        """Measure the plain deformation's volumes (along unit direction e) without a step."""
+        axis, g, base = self.gradient(e)
+        self.volumes = self.measure(e, axis, g, base, None)
+        self._note_plain(self.volumes)
+
     def step(self, e, divisor, preserve_volume):
         """One closed-form correction along unit direction e; the volume rows ask for 1/divisor of
         what remains. Updates D (and X) and the measured volumes; returns the volumes before."""
@@ -178,13 +193,7 @@ class _State:
         alpha = self.alpha_rows(g) if preserve_volume else None
         before = self.volumes = self.measure(e, axis, g, base, alpha)
         if self.plain is None:
-            # The target is on the volume's magnitude: where the lattice mirrors space (the plain
-            # deformation turns a volume's sign), the mirrored shape keeps its size instead of
-            # being turned inside out to reach the rest volume's sign.
-            self.plain = before.copy()
-            flip = (np.sign(before) * np.sign(self.targets)) < 0
-            self.targets[flip] *= -1.0
-            self.mirrored = bool(flip.any())
+            self._note_plain(before)
         rows, rhs = [], []
         if preserve_volume:
             # A row is degenerate when its coefficients are negligible next to the total volume
@@ -261,6 +270,7 @@ class _State:
             J = np.concatenate(blocks, axis=1)                      # (k, m N)
             r = self.targets - self.volumes
             usable = np.linalg.norm(J, axis=1) > 0
+            self.used |= usable
             rows.extend(J[usable])
             rhs.extend(r[usable])
         if self.pin_rows is not None:
@@ -273,13 +283,7 @@ class _State:
         if not rows:
             return False
         C, r = np.array(rows), np.array(rhs)
-        mob = np.ones(m * N) if self.mob is None else np.tile(self.mob, m)
-        CM = C * mob
-        gram = CM @ C.T
-        if not (np.isfinite(gram).all() and np.isfinite(r).all()):
-            raise ValueError(_OVERFLOW)
-        lam = np.linalg.lstsq(gram, r, rcond=tol.GRAM_RCOND)[0]
-        t = CM.T @ lam
+        t = _min_norm_step(C, r, None if self.mob is None else np.tile(self.mob, m))
         if not np.isfinite(t).all() or np.abs(t).max(initial=0.0) > tol.MAX_STEP_LATTICE * b.lattice.size:
             return False
         for d, (e, axis, _, _) in enumerate(grads):
@@ -291,6 +295,20 @@ class _State:
             return True
         x_pin = self.pin_rows @ self.D + self.b.x0[:, self.pin_slots].T
         return bool((np.abs(x_pin - self.pin_targets).max(1) <= self.met_rel * self.b.lattice.size).all())
+
+
+def _min_norm_step(C, r, mobility=None):
+    """t (n,) with C t = r for C (k, n), r (k,), of least norm in the mobility metric
+    (sum t_i^2 / mobility_i; mobility 0 keeps a coordinate fixed); least squares where the rows
+    cannot all be met. Solved on C itself (an SVD of C W, W = sqrt(mobility)), not on the Gram
+    matrix C W^2 C^T, which squares the condition number: island volume rows of nearby small
+    bodies are nearly parallel (singular values spanning ~1e-7), and a cut on the squared values
+    drops the very directions that separate them (docs/design.md, "Islands and pins")."""
+    if not (np.isfinite(C).all() and np.isfinite(r).all()):
+        raise ValueError(_OVERFLOW)   # (LAPACK may never return on NaN input)
+    w = None if mobility is None else np.sqrt(mobility)
+    u = np.linalg.lstsq(C if w is None else C * w, r, rcond=tol.JACOBIAN_RCOND)[0]
+    return u if w is None else w * u
 
 
 def _volumes(b, verts, islands):
@@ -343,15 +361,23 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets, steps)
 
     m = len(dirs)
-    if m:
+    # Several island volumes share control points in every direction: one closed-form step per
+    # direction would ask each direction alone to serve all of them (large, needless moves), so
+    # they are solved jointly over all directions from the start. One volume keeps the exact
+    # sequential closed form (the paper's).
+    jointly = bool(islands) and preserve_volume and m > 0
+    if m and not jointly:
         for d, e in enumerate(dirs):
             st.step(e, m - d, preserve_volume)
         plain = st.plain            # what the first step measured before moving anything
+    elif jointly:
+        st.start(dirs[0])
+        plain = st.plain
     else:
         e = np.eye(3)[0]
         plain = st.volumes = st.measure(e, *st.gradient(e), None)
     warnings = []
-    if preserve_volume and m and not st.volume_met().all():
+    if preserve_volume and m and not jointly and not st.volume_met().all():
         # Directions skipped as degenerate left their share: finish along the usable ones.
         for e in dirs:
             st.step(e, 1, preserve_volume)

@@ -10,6 +10,11 @@ DEGENERATE_REL_F32 = 1e-6
 #: fraction of the largest are treated as zero (least-squares / minimum-norm answer).
 GRAM_RCOND = 1e-12
 
+#: Relative cut-off for the joint Gauss-Newton step, applied to the singular values of the
+#: constraint matrix itself (not squared): independent island rows of nearby small bodies reach
+#: ~1e-7 of the largest; rows equal to rounding are dropped.
+JACOBIAN_RCOND = 1e-10
+
 #: A constraint counts as met when its residual is below this fraction of its scale
 #: (volume rows: the target volume; pin rows: the lattice size).
 MET_REL_F64 = 1e-9

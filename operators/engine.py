@@ -17,7 +17,7 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import linalg3
 from . import cage, gpu_backend, meshio, modifier
-from .cache_modifier import find_cache
+from .cache_modifier import find_cache, using_cache
 
 log = logging.getLogger(__name__)
 
@@ -770,9 +770,15 @@ def _remove_attribute(mesh, name):
 
 
 def release(obj):
-    """Forget the binding of an object whose VP-FFD modifier is gone, leaving its settings, its
-    other modifiers (a baked cache's included) and its coordinates as they are."""
+    """Forget the binding of an object whose VP-FFD modifier is gone (X on it, or Blender's
+    Apply), leaving its settings, its other modifiers and its coordinates as they are. What was
+    VP-FFD's goes with it: a baked cache switched off (a playing one stays: it is what is shown)
+    and the solver helper nothing uses any more."""
     mesh = obj.data
+    cache = find_cache(obj)
+    if cache is not None and not using_cache(obj):
+        obj.modifiers.remove(cache)
+    modifier.free_unused_helpers(obj)
     if mesh.library is None:
         for name in (PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
             _remove_attribute(mesh, name)

@@ -382,6 +382,22 @@ def _free_helper(ob):
             bpy.data.meshes.remove(mesh)
 
 
+def free_unused_helpers(obj):
+    """Remove the solver helpers made for `obj` that no modifier uses any more (its VP-FFD
+    modifier was removed or applied by Blender, which leaves the helper behind)."""
+    tagged = [o for o in bpy.data.objects if o.get(HELPER_TAG) == obj.name]
+    if not tagged:
+        return
+    # Blender's count can keep a user for the removed modifier's object input: ask who uses it.
+    users = bpy.data.user_map(subset=tagged)
+    for ob in tagged:
+        if not users.get(ob):
+            mesh = ob.data
+            bpy.data.objects.remove(ob)
+            if mesh is not None and mesh.users == 0:
+                bpy.data.meshes.remove(mesh)
+
+
 def helper(obj, mod=None, exclusive_of=()):
     """The solver helper of `obj`'s VP-FFD modifier, made when missing or when another object's
     modifier uses the same one (`exclusive_of`: helpers already claimed; duplicates of a bound

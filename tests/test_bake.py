@@ -559,3 +559,33 @@ def test_status_panel_logic_in_a_recording_layout(bk, tmp_path):
     bk.bake(ball, bpy.context.scene, str(tmp_path / "s.pc2"), FIRST, 3, switch=True)
     text = drawn()
     assert "playing the baked cache" in text.lower() and "Volume" not in text
+
+
+@pytest.mark.parametrize("how", ["apply", "remove"])
+def test_blenders_apply_or_remove_after_a_bake_leaves_nothing_of_vpffds(bk, tmp_path, how):
+    """Bake, switch back to the live solve (the cache modifier stays, switched off), then
+    Blender's own Apply (Ctrl+A) or X on the VP-FFD modifier: the switched-off cache goes with it,
+    and so does the solver helper; a cache that is playing stays (it is what is shown)."""
+    ball, _ = _rig()
+    scene = bpy.context.scene
+    bk.bake(ball, scene, str(tmp_path / "b.pc2"), FIRST, LAST, switch=True)
+    bk.switch_to_live(ball)
+    scene.frame_set(6)
+    helper_name = bk.engine.modifier.get_input(_vp_modifier(ball), bk.engine.modifier.SOLVER_INPUT).name
+    if how == "apply":
+        with bpy.context.temp_override(object=ball, active_object=ball):
+            assert bpy.ops.object.modifier_apply(modifier=_vp_modifier(ball).name) == {"FINISHED"}
+    else:
+        ball.modifiers.remove(_vp_modifier(ball))
+    bpy.context.view_layer.update()
+    assert not ball.vpffd.is_bound
+    assert [m.name for m in ball.modifiers] == []
+    assert bpy.data.objects.get(helper_name) is None, "the solver helper was left behind"
+
+    # A playing cache stays when the VP-FFD modifier goes: it is what the object shows.
+    ball2, _ = _rig("Ball2")
+    bk.bake(ball2, scene, str(tmp_path / "c.pc2"), FIRST, LAST, switch=True)
+    assert bk.using_cache(ball2)
+    ball2.modifiers.remove(_vp_modifier(ball2))
+    bpy.context.view_layer.update()
+    assert [m.name for m in ball2.modifiers] == ["VP-FFD Cache"]

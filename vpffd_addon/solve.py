@@ -133,6 +133,8 @@ class _State:
         self.skipped = []                            # steps refused as absurd, in words
         self.plain = None                            # (k,) volumes of the plain deformation
         self.mirrored = False                        # whether some target's sign was turned
+        self.moves = 0                               # how often the control points moved
+        self._last_gradient = None                   # ((direction, moves), gradient(e))
         f32 = self.k.float32
         self.degenerate = tol.DEGENERATE_REL_F32 if f32 else tol.DEGENERATE_REL_F64
         self.met_rel = tol.MET_REL_F32 if f32 else tol.MET_REL_F64
@@ -148,7 +150,16 @@ class _State:
     def gradient(self, e):
         """(axis, g, base) for unit direction e: g the e-gradient at the current vertices (a
         handle of the steps) and, for an axis, base (k,) = x0_a . g per row, so
-        V = base + D_a . alpha."""
+        V = base + D_a . alpha. The last one is kept until the control points move (the joint
+        iteration measures along its first direction and then starts there again)."""
+        key = (tuple(np.asarray(e, np.float64).tolist()), self.moves)
+        if self._last_gradient is not None and self._last_gradient[0] == key:
+            return self._last_gradient[1]
+        result = self._gradient(e)
+        self._last_gradient = (key, result)
+        return result
+
+    def _gradient(self, e):
         axis, p, q = _frame(e)
         if axis is not None:
             g = self.k.axis_gradient(axis, self.D)
@@ -241,6 +252,7 @@ class _State:
 
     def move(self, e, axis, t):
         """Move the control points by t (N,) along unit direction e (`axis` when e is one)."""
+        self.moves += 1
         if axis is not None:
             self.D[:, axis] += t
             self.P[:, axis] += t

@@ -5,10 +5,10 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import bake, cage, demos, gpu_backend, handlers, log, ops, overlay, panel, properties
+from . import bake, cage, demos, fit, gpu_backend, handlers, log, ops, overlay, panel, properties
 
 classes = (properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
-           + cage.classes)
+           + cage.classes + fit.classes)
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
 
@@ -20,12 +20,14 @@ def register():
     handlers.register()
     demos.register()
     cage.register()
+    fit.register()
     overlay.register()
 
 
 def unregister():
     gpu_backend.release()
     overlay.unregister()
+    fit.unregister()
     cage.unregister()
     demos.unregister()
     handlers.unregister()

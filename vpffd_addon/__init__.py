@@ -13,6 +13,7 @@ from .binder import bind
 from .binding import Binding
 from .cage import Cage, box_cage, extrude
 from .cage_binding import CageBinding
+from .fit import fit_lattice
 from .frame import FrameInputs, FrameResult, Pipeline
 from .jacobian import jacobian_det
 from .mesh import Topology

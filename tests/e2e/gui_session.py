@@ -354,6 +354,30 @@ def session():
           [m.type for m in tube.modifiers if m.show_viewport][-1] == "NODES",
           [(m.name, m.type, m.show_viewport) for m in tube.modifiers])
 
+    # Add > Lattice > VP-FFD Lattice Deform Selected, then one Ctrl+Z takes it all back.
+    menu = getattr(bpy.types, "VIEW3D_MT_lattice_add", bpy.types.VIEW3D_MT_add)
+    entries = [getattr(fn, "__module__", "") for fn in getattr(menu.draw, "_draw_funcs", [])]
+    check("the Add menu offers VP-FFD Lattice Deform Selected",
+          any(m.endswith(".operators.fit") for m in entries), entries)
+    op("mesh.primitive_ico_sphere_add", radius=0.7, location=(4.0, 0.0, 1.0))
+    yield 0.3
+    sphere = bpy.context.window_manager.windows[0].view_layer.objects.active
+    op("object.vpffd_lattice_deform_selected")
+    yield 0.5
+    layer = bpy.context.window_manager.windows[0].view_layer
+    fitted = layer.objects.active
+    check("Lattice Deform Selected: the fitted lattice is active, the sphere bound to it",
+          fitted is not None and fitted.type == "LATTICE" and sphere.vpffd.is_bound
+          and sphere.vpffd.lattice == fitted, (getattr(fitted, "type", None), sphere.vpffd.is_bound))
+    fitted_name, sphere_name = fitted.name, sphere.name
+    op("ed.undo")
+    yield 0.8
+    sphere = bpy.data.objects.get(sphere_name)
+    check("one Ctrl+Z removes the fitted lattice and the binding",
+          bpy.data.objects.get(fitted_name) is None and sphere is not None
+          and not sphere.vpffd.is_bound and not any(m.type == "NODES" for m in sphere.modifiers),
+          (bpy.data.objects.get(fitted_name), sphere and sphere.vpffd.is_bound))
+
 
 def main():
     gen = session()

@@ -8,7 +8,7 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty, IntVectorProperty
 
 from .. import vpffd_addon as vp
-from .meshio import matrix, mesh_coords, transform
+from .meshio import matrix, mesh_coords, world_bounds
 from .text import report
 
 CELLS_PROPERTY = "vpffd_cells"
@@ -98,30 +98,17 @@ def cage_object(name, points, cells, matrix_world=None):
     return ob
 
 
-def _selected_meshes(context, exclude=None):
+def selected_meshes(context, exclude=None):
+    """The selected mesh objects, VP-FFD cages (and `exclude`) left out."""
     return [ob for ob in context.selected_objects if ob.type == "MESH" and ob is not exclude
             and not is_cage(ob)]
 
 
 def _padded_bounds(objects, depsgraph, margin, to_local=None):
-    """`_world_bounds` grown by `margin` times the largest extent on every side."""
-    lo, hi = _world_bounds(objects, depsgraph, to_local)
+    """`meshio.world_bounds` grown by `margin` times the largest extent on every side."""
+    lo, hi = world_bounds(objects, depsgraph, to_local)
     pad = margin * max(float((hi - lo).max()), 1e-6)
     return lo - pad, hi + pad
-
-
-def _world_bounds(objects, depsgraph, to_local=None):
-    """(lo, hi) of the objects' evaluated vertices, in world space or through `to_local` (4, 4)."""
-    pts = []
-    for ob in objects:
-        ev = ob.evaluated_get(depsgraph)
-        co = mesh_coords(ev.data)
-        M = matrix(ev.matrix_world)
-        pts.append(transform(co, M if to_local is None else to_local @ M))
-    pts = np.concatenate(pts) if pts else np.zeros((0, 3))
-    if not len(pts):
-        raise ValueError("the selected meshes have no vertices")
-    return pts.min(0), pts.max(0)
 
 
 class OBJECT_OT_vpffd_cage_add_box(bpy.types.Operator):
@@ -142,7 +129,7 @@ class OBJECT_OT_vpffd_cage_add_box(bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
-            targets = _selected_meshes(context)
+            targets = selected_meshes(context)
             if targets:
                 lo, hi = _padded_bounds(targets, context.evaluated_depsgraph_get(), self.margin)
                 hi = np.maximum(hi, lo + 1e-6)
@@ -249,7 +236,7 @@ class OBJECT_OT_vpffd_cage_fit(bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         cage_ob = context.active_object
-        targets = _selected_meshes(context, exclude=cage_ob)
+        targets = selected_meshes(context, exclude=cage_ob)
         if not targets:
             report(self, "ERROR", "select the meshes to enclose, then the cage last (active)")
             return {"CANCELLED"}

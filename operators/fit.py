@@ -14,25 +14,11 @@ except ImportError:  # loaded outside the extension package
     from vpffd_addon import fit_lattice
 
 
-def _evaluated_world_points(obj, depsgraph):
-    """(V, 3) float64 world positions of what Blender evaluates for `obj` (what reaches a VP-FFD
-    modifier added at the end of its stack: after an Armature, a Subdivision Surface, ...)."""
-    ob_eval = obj.evaluated_get(depsgraph)
-    mesh = ob_eval.to_mesh()
-    try:
-        co = meshio.mesh_coords(mesh)
-    finally:
-        ob_eval.to_mesh_clear()
-    m = np.array(obj.matrix_world, np.float64)
-    return co @ m[:3, :3].T + m[:3, 3]
-
-
 def add_fitted_lattice(context, meshes, resolution=4, margin=0.05, axes="XYZ"):
     """Make a B-spline lattice around the evaluated `meshes` and bind each of them to it with
     correction `axes`. Returns (lattice object, {mesh name: warnings or error text})."""
-    depsgraph = context.evaluated_depsgraph_get()
-    points = np.concatenate([_evaluated_world_points(ob, depsgraph) for ob in meshes])
-    centre, size, shape = fit_lattice(points, margin=margin, resolution=resolution)
+    lo, hi = meshio.world_bounds(meshes, context.evaluated_depsgraph_get())
+    centre, size, shape = fit_lattice(np.stack([lo, hi]), margin=margin, resolution=resolution)
     data = bpy.data.lattices.new("VP-FFD Lattice")
     data.points_u, data.points_v, data.points_w = (int(n) for n in shape)
     for axis in "uvw":

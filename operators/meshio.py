@@ -126,3 +126,18 @@ def matrix(m):
 def transform(points, mat):
     """Apply a (4, 4) affine matrix to (V, 3) points (without BLAS: see `mesh.affine`)."""
     return affine(points, mat)
+
+
+def world_bounds(objects, depsgraph, to_local=None):
+    """(lo, hi) (3,) of the objects' evaluated vertices (what reaches the end of each one's
+    modifier stack), in world space or through `to_local` (4, 4). ValueError when there are none."""
+    pts = []
+    for ob in objects:
+        ev = ob.evaluated_get(depsgraph)
+        co = mesh_coords(ev.data)
+        M = matrix(ev.matrix_world)
+        pts.append(transform(co, M if to_local is None else to_local @ M))
+    pts = np.concatenate(pts) if pts else np.zeros((0, 3))
+    if not len(pts):
+        raise ValueError("the selected meshes have no vertices")
+    return pts.min(0), pts.max(0)

@@ -245,7 +245,6 @@ def _build(ng):
         node.location = (x, y)
     ng[_TAG] = _VERSION
     ng[_KIND] = kind
-    _hide_inputs(ng)
 
 
 def _hide_inputs(ng):
@@ -254,9 +253,8 @@ def _hide_inputs(ng):
     (an older file's group keeps its sockets, so its modifiers keep their values)."""
     if ng.library is not None:
         return
-    for item in ng.interface.items_tree:
-        if (getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"
-                and not getattr(item, "hide_in_modifier", True)):
+    for item in node_inputs.value_sockets(ng):
+        if not getattr(item, "hide_in_modifier", True):
             item.hide_in_modifier = True
 
 
@@ -271,7 +269,6 @@ def offset_node_group():
         if ng.get(_TAG):
             if not _current(ng) and ng.library is None:
                 _build(ng)
-            _hide_inputs(ng)
             return ng
     ng = bpy.data.node_groups.new(NODE_GROUP_NAME, "GeometryNodeTree")
     _build(ng)
@@ -375,11 +372,15 @@ def _new_helper(obj):
 def _free_helper(ob):
     if ob is None or ob.get(HELPER_TAG) is None:
         return
-    mesh = ob.data
     if ob.users == 0:        # still used when a duplicate's modifier shares it
-        bpy.data.objects.remove(ob)
-        if mesh is not None and mesh.users == 0:
-            bpy.data.meshes.remove(mesh)
+        _remove_helper(ob)
+
+
+def _remove_helper(ob):
+    mesh = ob.data
+    bpy.data.objects.remove(ob)
+    if mesh is not None and mesh.users == 0:
+        bpy.data.meshes.remove(mesh)
 
 
 def free_unused_helpers(obj):
@@ -392,10 +393,7 @@ def free_unused_helpers(obj):
     users = bpy.data.user_map(subset=tagged)
     for ob in tagged:
         if not users.get(ob):
-            mesh = ob.data
-            bpy.data.objects.remove(ob)
-            if mesh is not None and mesh.users == 0:
-                bpy.data.meshes.remove(mesh)
+            _remove_helper(ob)
 
 
 def helper(obj, mod=None, exclusive_of=()):

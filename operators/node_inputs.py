@@ -38,13 +38,15 @@ def put(mod, identifier, value):
         mod[identifier] = value
 
 
+def value_sockets(group):
+    """The node group's interface input sockets that hold a value (not the geometry)."""
+    return [item for item in group.interface.items_tree
+            if getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"]
+
+
 def identifiers(mod):
     """The identifiers of the modifier's input sockets that hold a value (not the geometry)."""
-    group = mod.node_group
-    if group is None:
-        return []
-    return [item.identifier for item in group.interface.items_tree
-            if getattr(item, "in_out", None) == "INPUT" and item.socket_type != "NodeSocketGeometry"]
+    return [] if mod.node_group is None else [item.identifier for item in value_sockets(mod.node_group)]
 
 
 def values(mod):

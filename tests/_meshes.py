@@ -174,16 +174,12 @@ def many_small_islands(n=40, clusters=2, spread=0.1, seed=5):
     several share each lattice cell, as teeth, claws and eyes do on a character."""
     rng = np.random.default_rng(seed)
     centres = rng.uniform(-0.6, 0.6, (clusters, 3))
-    vs, fs, ids, n_v = [], [], [], 0
+    parts = []
     for i in range(n):
         c = tuple(centres[i % clusters] + rng.uniform(-spread, spread, 3))
         r = float(rng.uniform(0.015, 0.04))
-        v, f = vp.icosphere(1, r, center=c) if i % 2 else vp.box(2, 1.5 * r, center=c)
-        vs.append(v)
-        fs.append(f + n_v)
-        ids.append(np.full(len(v), i))
-        n_v += len(v)
-    return np.vstack(vs), np.vstack(fs), np.concatenate(ids)
+        parts.append(vp.icosphere(1, r, center=c) if i % 2 else vp.box(2, 1.5 * r, center=c))
+    return union(parts)
 
 
 def island_volumes(verts, tris, island):

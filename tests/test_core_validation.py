@@ -460,22 +460,22 @@ def test_a_correction_beyond_the_lattice_diagonal_is_refused():
     assert sol.volume == pytest.approx(sol.plain_volume, rel=1e-9)
 
 
+def _squashed_3x3x3(rng):
+    """A 3x3x3 B-spline lattice over [-1, 1]^3, squashed to half its height and jittered."""
+    lat = vp.Lattice((3, 3, 3), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    P = lat.rest_points.copy()
+    P[:, 2] *= 0.5
+    P += rng.normal(0, 0.05, P.shape)
+    return lat, P
+
+
 def test_islands_the_lattice_cannot_reach_are_named_with_their_miss():
     """Thirty small spheres in a 3x3x3 lattice of which only the centre point may move (Mobility
     Group): 3 coordinates cannot give 30 islands each its own volume. The warning names the
     islands that miss and by how much."""
     rng = np.random.default_rng(3)
-    vs, fs, n = [], [], 0
-    for c in rng.uniform(-0.7, 0.7, (30, 3)):
-        v, f = vp.icosphere(1, 0.08, center=tuple(c))
-        vs.append(v)
-        fs.append(f + n)
-        n += len(v)
-    v, f = np.concatenate(vs), np.concatenate(fs)
-    lat = vp.Lattice((3, 3, 3), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
-    P = lat.rest_points.copy()
-    P[:, 2] *= 0.5
-    P += rng.normal(0, 0.05, P.shape)
+    v, f, _ = M.union([vp.icosphere(1, 0.08, center=tuple(c)) for c in rng.uniform(-0.7, 0.7, (30, 3))])
+    lat, P = _squashed_3x3x3(rng)
     mobility = np.zeros(lat.n_points)
     mobility[13] = 1.0
     sol = vp.bind(lat, v, f).solve(P, axes="XYZ", islands=True, mobility=mobility)
@@ -491,17 +491,9 @@ def test_concentric_shells_each_keep_their_volume():
     parallel, yet independent. Solved on the constraint matrix itself (not its Gram matrix),
     every shell meets its target and nothing is reported."""
     rng = np.random.default_rng(3)
-    vs, fs, n = [], [], 0
-    for r, flip in ((0.6, False), (0.55, True), (0.3, False), (0.28, True), (0.1, False)):
-        v, f = vp.icosphere(3, r)
-        vs.append(v)
-        fs.append((f[:, ::-1] if flip else f) + n)
-        n += len(v)
-    v, f = np.concatenate(vs), np.concatenate(fs)
-    lat = vp.Lattice((3, 3, 3), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
-    P = lat.rest_points.copy()
-    P[:, 2] *= 0.5
-    P += rng.normal(0, 0.05, P.shape)
+    shells = [vp.icosphere(3, r) for r in (0.6, 0.55, 0.3, 0.28, 0.1)]
+    v, f, _ = M.union([(sv, sf[:, ::-1] if k % 2 else sf) for k, (sv, sf) in enumerate(shells)])
+    lat, P = _squashed_3x3x3(rng)
     b = vp.bind(lat, v, f)
     sol = b.solve(P, axes="XYZ", islands=True)
     assert sol.warnings == ()

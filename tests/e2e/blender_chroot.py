@@ -229,13 +229,21 @@ def run_blender(args, files=None, timeout=600, workdir=None, env=None):
     return proc.returncode, proc.stdout, proc.stderr, work
 
 
+def copy_sources(workdir, into, keep=None, source_dir=REPO_ROOT):
+    """Copy the source tree's files (those git tracks or would track, else the whole tree) whose
+    relative name passes `keep` (all by default) into workdir/into/. Returns that folder's path
+    as seen from inside the chroot."""
+    names = [n for n in _source_files(source_dir) if keep is None or keep(n)]
+    dest = os.path.join(workdir, into)
+    copy_files({n: os.path.join(source_dir, n) for n in names}, dest)
+    return _inside(chroot_dir(), dest)
+
+
 def build_extension(source_dir, workdir, timeout=300):
     """Build the extension zip from `source_dir` (default: the files git tracks or would track,
     else the whole tree) with the chroot's `blender --command extension build`, which applies the
     manifest's [build] excludes. Returns the zip's host path (in workdir/ext_build/)."""
-    src = os.path.join(workdir, "ext_src")
-    names = _source_files(source_dir)
-    copy_files({n: os.path.join(source_dir, n) for n in names}, src)
+    copy_sources(workdir, "ext_src", source_dir=source_dir)
     os.makedirs(os.path.join(workdir, "ext_build"), exist_ok=True)
     rc, out, err, _ = run_blender(
         ["--command", "extension", "build", "--source-dir", "{work}/ext_src",

@@ -35,9 +35,7 @@ def main(argv):
     root = bc.ensure_chroot()
     work = bc.new_workdir(root)
     try:
-        names = [n for n in bc._source_files(bc.REPO_ROOT) if not n.startswith(("docs/", "out/"))]
-        bc.copy_files({"src/" + n: os.path.join(bc.REPO_ROOT, n) for n in names}, work)
-        inside = bc._inside(root, os.path.join(work, "src"))
+        inside = bc.copy_sources(work, "src", keep=lambda n: not n.startswith(("docs/", "out/")))
         args, expr = _marker(argv)
         mark = "core" if expr is None else f"core and ({expr})"
         env = {"PATH": "/usr/sbin:/usr/bin:/sbin:/bin", "HOME": "/root", "LANG": "C.UTF-8",

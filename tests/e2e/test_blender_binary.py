@@ -226,16 +226,6 @@ def _volume(co, tris):
     return float(np.einsum("ij,ij->i", c[t[:, 0]], np.cross(c[t[:, 1]], c[t[:, 2]])).sum() / 6.0)
 
 
-@pytest.fixture(scope="module")
-def chroot():
-    try:
-        root = bc.ensure_chroot()
-    except bc.ChrootUnavailable as exc:
-        pytest.skip("Blender chroot unavailable: %s" % exc)
-    print("e2e with " + bc.describe()["text"])
-    return root
-
-
 @pytest.fixture
 def workdir(chroot):
     work = bc.new_workdir(chroot)

@@ -282,16 +282,6 @@ dump()
 '''
 
 
-@pytest.fixture(scope="module")
-def chroot():
-    try:
-        root = bc.ensure_chroot()
-    except bc.ChrootUnavailable as exc:
-        pytest.skip("Blender chroot unavailable: %s" % exc)
-    print("e2e with " + bc.describe()["text"])
-    return root
-
-
 def _read(path):
     with open(path, "rb") as f:
         return f.read()

@@ -14,7 +14,6 @@ from . import blender_chroot as bc
 
 pytestmark = [pytest.mark.e2e, pytest.mark.gpu]
 
-ROOT = bc.REPO_ROOT
 
 SCRIPT = r'''
 import importlib.util, json, sys
@@ -58,16 +57,6 @@ json.dump(out, open("{work}/gpu.json", "w"))
 '''
 
 
-@pytest.fixture(scope="module")
-def chroot():
-    try:
-        root = bc.ensure_chroot()
-    except bc.ChrootUnavailable as exc:
-        pytest.skip("Blender chroot unavailable: %s" % exc)
-    print("e2e with " + bc.describe()["text"])
-    return root
-
-
 @pytest.mark.parametrize("backend", ["opengl", "vulkan"])
 def test_kernels_compile_and_match_the_cpu_on_each_backend(chroot, backend):
     version = tuple(int(x) for x in bc.describe()["version"].split()[0].split(".")[:2])
@@ -75,8 +64,7 @@ def test_kernels_compile_and_match_the_cpu_on_each_backend(chroot, backend):
         pytest.skip(f"Vulkan backend needs Blender 4.5 or newer (the chroot has {bc.describe()['text']})")
     work = bc.new_workdir(chroot)
     try:
-        names = [n for n in bc._source_files(ROOT) if n.startswith(("vpffd_addon/", "operators/"))]
-        bc.copy_files({"src/" + n: os.path.join(ROOT, n) for n in names}, work)
+        bc.copy_sources(work, "src", keep=lambda n: n.startswith(("vpffd_addon/", "operators/")))
         inside = bc._inside(chroot, work)
         script = os.path.join(work, "gpu_check.py")
         with open(script, "w") as fh:

@@ -6,6 +6,7 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty
 
 from . import engine, meshio
+from .cage import selected_meshes
 from .text import report
 
 try:
@@ -61,10 +62,10 @@ class OBJECT_OT_vpffd_lattice_deform_selected(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        return context.mode == "OBJECT" and any(ob.type == "MESH" for ob in context.selected_objects)
+        return context.mode == "OBJECT" and bool(selected_meshes(context))
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        meshes = [ob for ob in context.selected_objects if ob.type == "MESH"]
+        meshes = selected_meshes(context)          # a VP-FFD cage is a control, not a mesh to deform
         try:
             lat, results = add_fitted_lattice(context, meshes, self.resolution, self.margin, self.axes)
         except ValueError as exc:

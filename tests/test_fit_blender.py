@@ -71,6 +71,7 @@ def test_fits_what_reaches_the_slot_binds_every_selected_mesh_and_keeps_the_volu
 
 
 def test_nothing_selected_that_can_be_bound_is_refused(ext):
+    """A lattice alone, or a VP-FFD cage alone: nothing to bind."""
     lt = bpy.data.lattices.new("L")
     other = bpy.data.objects.new("L", lt)
     bpy.context.scene.collection.objects.link(other)
@@ -79,3 +80,16 @@ def test_nothing_selected_that_can_be_bound_is_refused(ext):
     bpy.context.view_layer.objects.active = other
     with bpy.context.temp_override(selected_objects=[other], active_object=other, object=other):
         assert not bpy.ops.object.vpffd_lattice_deform_selected.poll()
+    # A VP-FFD cage is a mesh object too, but a control, not a mesh to deform: alone it is refused,
+    # and beside a mesh the fitted lattice leaves it out.
+    assert bpy.ops.object.vpffd_cage_add_box(resolution=(2, 2, 2), size=1.0) == {"FINISHED"}
+    cage_ob = bpy.context.view_layer.objects.active
+    with bpy.context.temp_override(selected_objects=[cage_ob], active_object=cage_ob, object=cage_ob):
+        assert not bpy.ops.object.vpffd_lattice_deform_selected.poll()
+    v, f = core.icosphere(2, 0.3)
+    ball = bpy.data.objects.new("Ball", triangle_mesh(v, f, "Ball"))
+    bpy.context.scene.collection.objects.link(ball)
+    bpy.context.view_layer.update()
+    assert _run([ball, cage_ob], ball) == {"FINISHED"}
+    assert ball.vpffd.is_bound and not cage_ob.vpffd.is_bound
+    assert not any(m.type == "NODES" for m in cage_ob.modifiers)

@@ -342,6 +342,21 @@ def _select_first_corrected(scene):
         layer.objects.active = bound[0]
 
 
+def _frame_views(context):
+    """Show the demo through its camera in every 3D viewport of the window, the camera's frame
+    filling the view (as Numpad 0, then View > Cameras > Frame Camera Bounds)."""
+    window, screen = context.window, getattr(context, "screen", None)
+    if window is None or screen is None:
+        return                          # no window (background, farm): nothing to frame
+    for area in screen.areas:
+        region = next((r for r in area.regions if r.type == "WINDOW"), None)
+        if area.type != "VIEW_3D" or region is None or area.spaces.active.region_3d is None:
+            continue
+        area.spaces.active.region_3d.view_perspective = "CAMERA"
+        with context.temp_override(window=window, screen=screen, area=area, region=region):
+            bpy.ops.view3d.view_center_camera()
+
+
 class _DemoOperator:
     bl_options = {"REGISTER", "UNDO"}
     new_scene: bpy.props.BoolProperty(
@@ -376,6 +391,7 @@ class _DemoOperator:
             if workspace is not None:
                 workspace.status_text_set(None)
         _select_first_corrected(scene)
+        _frame_views(context)
         return {"FINISHED"}
 
 

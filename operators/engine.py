@@ -57,6 +57,7 @@ class Status:
     rebound: bool = False                  #: whether this update embedded the input anew
     outside: Optional[int] = None          #: points outside the lattice's box or cage's region
     outside_follow: bool = True            #: whether those follow the boundary (else they stay)
+    editing: bool = False                  #: solved from the mesh as edited (its Edit Mode)
 
 
 def status(obj):
@@ -93,6 +94,24 @@ def forget(obj=None):
     else:
         for table in (_cache, _stats, _reported):
             table.pop(obj.session_uid, None)
+
+
+def relink_after_undo(obj, objects):
+    """Point a bound object back at the lattice it lost to Delete when undo brought that lattice
+    back. VP-FFD lets go of a deleted lattice in its update handler, after Delete's undo step was
+    written, so the step before Delete holds the same object data as the step of Delete and
+    Blender's undo keeps the object as it is in memory, link cleared (Blender clears its own
+    modifier's link inside the operator, before the step is written). `objects`: bpy.data.objects.
+    Returns True when the link was restored."""
+    state = _cache.get(obj.session_uid)
+    if state is None or not state.deleted or obj.vpffd.lattice is not None or not obj.vpffd.is_bound:
+        return False
+    back = objects.get(state.deleted)
+    if not _is_control(back) or not any(True for _ in back.users_scene):
+        return False
+    obj.vpffd.lattice = back        # its update callback points the modifier's input at it too
+    state.deleted = None
+    return True
 
 
 def invalidate():
@@ -324,7 +343,7 @@ def _mobility(s, lattice_object):
     return _lattice_group(lattice_object, s.mobility_group)
 
 
-def _faces(state, obj, ob_eval, n, tapped, mod, may_write):
+def _faces(state, obj, ob_eval, n, tapped, mod, may_write, editing=False):
     """((F, 3) triangles of the `n` positions that reach the slot or None when unknown, where
     they came from: "mesh", "final", "tap" or None).
 
@@ -333,8 +352,20 @@ def _faces(state, obj, ob_eval, n, tapped, mod, may_write):
     the stack, provided that nothing after the slot changed the count again; otherwise the
     modifier is asked to pass the triangles of its input along (its Tap Faces input, which costs a
     triangulation per evaluation, so it is on only while needed). `tapped`: the triangles that
-    came with the tap, or None."""
+    came with the tap, or None.
+
+    In the mesh's Edit Mode the mesh's own data is not the edited mesh (Blender writes it back on
+    leaving), so the faces come with the tap; on the update that enters Edit Mode, before the tap
+    brings them, the edited mesh is still the one last solved, and so are its faces."""
     mesh = obj.data
+    if editing:
+        if may_write:
+            modifier.set_input(mod, modifier.FACES_INPUT, True)
+        if tapped is not None and len(tapped) and int(tapped.max()) < n:
+            return tapped, "tap"
+        if state.faces is not None and len(state.faces) and int(state.faces.max()) < n:
+            return state.faces, state.faces_key[0]
+        return None, None
     if n == len(mesh.vertices):
         source, key = mesh, ("mesh", meshio.topology_signature(mesh))
     else:
@@ -402,185 +433,60 @@ def _evaluated_here(obj, depsgraph):
     enabled for renders (a render evaluates what renders)."""
     try:
         if depsgraph.mode == "RENDER":
-            return not obj.hide_render
+            return _renders(obj, depsgraph.view_layer)
         return bool(obj.visible_get(view_layer=depsgraph.view_layer))
     except (ReferenceError, RuntimeError, TypeError):
         return True
 
 
+@dataclasses.dataclass
+class _Frame:
+    """What Blender hands over for one update of a bound object, ready for the core."""
+    mod: object                 #: the VP-FFD modifier
+    helper: object              #: its solver helper, where the offsets go
+    inputs: "vp.FrameInputs"
+    signature: tuple            #: (settings, arrays): equal signatures give equal results
+    faces_from: Optional[str]   #: "mesh", "final", "tap" or None (see `_faces`)
+    lattice_matrix: np.ndarray  #: (4, 4) world matrix of the lattice object
+    warnings: list
+    stale_weights: bool         #: the vertex-group input changed: solve again next evaluation
+    editing: bool               #: the mesh is in Edit Mode
+
+
+def _renders(obj, view_layer):
+    """Whether a render of `view_layer` renders `obj`: not hidden from renders itself, and in a
+    collection that is neither excluded from the view layer nor hidden from renders, nor below
+    one that is."""
+    if obj.hide_render:
+        return False
+    stack = [view_layer.layer_collection]
+    while stack:
+        layer_collection = stack.pop()
+        if layer_collection.exclude or layer_collection.collection.hide_render:
+            continue
+        if layer_collection.collection.objects.get(obj.name) == obj:
+            return True
+        stack.extend(layer_collection.children)
+    return False
+
+
 def _update(obj, depsgraph, force, helpers_taken=None):
-    s = obj.vpffd
-    uid = obj.session_uid
+    """One update in three steps: read what Blender hands over (`_read`), evaluate the core's
+    pipeline on it (`_evaluate`), publish the result: offsets, panel figures, overlay (`_publish`)."""
     state = None
     try:
-        if not s.is_bound:
-            return False
-        mod = modifier.find(obj)
+        mod = _slot_to_solve(obj, depsgraph, force)
         if mod is None:
-            if depsgraph.mode != "RENDER":
-                # Removed (X on the modifier) or applied (Ctrl+A): as with any modifier, the object
-                # is no longer deformed by it. Its settings stay for a later Bind.
-                release(obj)
             return False
-        if not force and not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
-            if depsgraph.mode != "RENDER":
-                # Switched off in the viewport: the panel says so instead of an error or figures of
-                # an earlier solve; switching it on solves again.
-                _pause(obj, switched_off=True)
-            return False  # switched off for this evaluation, like any modifier
-        if obj.mode == "EDIT":
-            _pause(obj, paused="the mesh is in Edit Mode: VP-FFD solves again when you leave it")
-            return False
-        if not force and not _evaluated_here(obj, depsgraph):
-            # Hidden (H, Disable in Viewports, a hidden or excluded collection): Blender does not
-            # evaluate it, so nothing reaches the slot. Keep the offsets shown last and solve
-            # again when it is shown: it comes back as it was, with no error.
-            if depsgraph.mode != "RENDER":
-                _pause(obj, paused="the object is hidden: VP-FFD solves again when it is shown")
-            return False
-        state = _cache.get(uid)
+        state = _cache.get(obj.session_uid)
         if state is None:
-            state = _cache[uid] = _Bound()
-        extra = modifier.find_all(obj)[1:]
-        if extra:
-            raise ValueError(f"one VP-FFD modifier per object: remove "
-                             f"{', '.join(repr(m.name) for m in extra)}")
-        # Read what reached the slot before touching the modifier: writing its inputs tags the
-        # object, and Blender 4.4+ then refuses to hand out its evaluated geometry.
-        ob_eval = obj.evaluated_get(depsgraph)
-        tap = modifier.read_tap(ob_eval, depsgraph)
-        stale_weights = False
-        if depsgraph.mode != "RENDER":
-            stale_weights = modifier.sync_inputs(obj, mod)
-            helper = modifier.helper(obj, mod, exclusive_of=helpers_taken or ())
-        else:
-            helper = modifier.get_input(mod, modifier.SOLVER_INPUT)
-        if helper is None:
-            raise ValueError("the VP-FFD modifier has no solver helper: Re-bind")
-        if helpers_taken is not None:
-            helpers_taken.add(helper)
-        lat_ob = s.lattice
-        if lat_ob is not None and not any(True for _ in lat_ob.users_scene) \
-                and depsgraph.mode != "RENDER":
-            # Deleted (X): Delete only unlinks an object that still has users, and these settings
-            # and the modifier's input are users. Let it go, as Blender's Lattice modifier does.
-            state.deleted = lat_ob.name
-            s.lattice = None
-            modifier.set_lattice(obj, None)
-            lat_ob = None
-        if not _is_control(lat_ob):
-            _zero_offsets(obj, state)
-            _set_stats(obj, error=(f"lattice '{state.deleted}' was deleted: pick another, or Unbind"
-                                   if lat_ob is None and state.deleted else _missing_control(lat_ob)))
+            state = _cache[obj.session_uid] = _Bound()
+        frame = _read(obj, state, mod, depsgraph, helpers_taken)
+        if frame is None or (not force and _unchanged(state, frame)):
             return False
-        state.deleted = None
-
-        if tap is None:
-            if not (mod.show_render if depsgraph.mode == "RENDER" else mod.show_viewport):
-                _set_stats(obj, error="the VP-FFD modifier is switched off: switch it on to solve")
-                return False
-            _zero_offsets(obj, state)   # a defined result: whatever reaches the slot, undeformed
-            state.signature = None      # solve again once something reaches it
-            _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
-                                  "Geometry Nodes modifier after it drops instances or point clouds?)")
-            return False
-        X, weights, tapped_tris = tap
-        # Animated settings (volume scale, strength, ...) have this evaluation's values on the
-        # evaluated object only: a render's depsgraph does not write them back to the original.
-        s = ob_eval.vpffd
-        state.settings = s
-        lat_eval = lat_ob.evaluated_get(depsgraph)
-        cage_options = None
-        if lat_ob.type == "LATTICE":
-            lattice, grid = _lattice_rest(lat_ob, s)
-            points = meshio.lattice_points(lat_eval.data, "co_deform")
-            lattice_weights = _lattice_weights(lat_ob)
-        else:
-            lattice, grid, _ = _cage_model(state, obj, lat_ob, helper)
-            points = _cage_points(lat_eval, lattice.n_points)
-            cage_options = (s.cage_depth, s.cage_outside)
-            lattice_weights = None
-        if len(points) != lattice.n_points:
-            raise ValueError(f"lattice '{lat_ob.name}' has {len(points)} points, expected {lattice.n_points}")
-        M_lat = meshio.matrix(lat_eval.matrix_world)
-        M_ob = meshio.matrix(ob_eval.matrix_world)
-        for what, M in (("lattice", M_lat), ("mesh", M_ob)):
-            if not abs(linalg3.det3(M[:3, :3])) > 1e-30:
-                name = lat_ob.name if what == "lattice" else obj.name
-                raise ValueError(f"the {what} object '{name}' is scaled to zero along an axis on this "
-                                 "frame: there is no lattice space to deform in (the mesh shows "
-                                 "undeformed)")
-        L = linalg3.matmul4(linalg3.affine_inverse(M_lat), M_ob)
-        axes, directions = _directions(s, M_lat)
-        tris, faces_from = _faces(state, obj, ob_eval, len(X), tapped_tris, mod,
-                                  may_write=depsgraph.mode != "RENDER")
-        warnings = []
-        pins = _pins(s, obj, helper)
-        if len(pins) and faces_from != "mesh":
-            warnings.append("pins are off: the modifiers before VP-FFD change the vertex count")
-            pins = pins[:0]
-        pin_targets = _pin_targets(s, pins, X, M_lat, M_ob)
-        mobility = _mobility(s, lat_ob)
-        correct = bool(axes or directions is not None or pin_targets)
-        if tris is None and correct:
-            warnings.append("the volume is not corrected on this update: the faces that reach "
-                            "VP-FFD are not known yet (modifiers before and after it change the "
-                            "vertex count); they are passed along from the next evaluation on")
-            correct = False
-        settings = (axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
-                    s.use_fold_attribute, cage_options, faces_from, state.faces_key, type(lattice).__name__,
-                    getattr(lattice, "shape", None), getattr(lattice, "interpolation", None))
-        arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions,
-                  tris if faces_from == "tap" else None)
-        signature = (settings, arrays)
-        if not force and state.signature is not None and state.signature[0] == settings and all(
-                (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
-                for a, b in zip(state.signature[1], arrays)):
-            return False
-
         t0 = time.perf_counter()
-        inputs = vp.FrameInputs(
-            positions=X, tris=tris, lattice=lattice, points=points, matrix=L, weights=weights,
-            lattice_weights=lattice_weights, strength=s.strength, correct=correct, axes=axes,
-            directions=directions, volume_scale=s.volume_scale, mobility=mobility, pins=pin_targets,
-            islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
-            dtype=np.float32)
-        state.backend = ("CPU", "")
-        result = state.pipeline.evaluate(inputs)
-        core_seconds = time.perf_counter() - t0
-        offsets = result.positions - X
-        if not np.isfinite(offsets).all():
-            raise ValueError("the solve produced non-finite offsets; nothing was written")
-        offsets32 = _write(state, helper, offsets)
-        seconds = time.perf_counter() - t0
-        # Weights read before the vertex-group input changed are the old group's: solve again
-        # after the evaluation that the change brings.
-        state.signature, state.result = (None if stale_weights else signature), result
-        state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
-        edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
-        state.overlay = (meshio.transform(result.points, M_lat), edges)
-
-        binding = result.binding
-        backend, backend_reason = state.backend
-        info = dict(error=None, seconds=seconds, core_seconds=core_seconds,
-                    warnings=tuple(warnings) + tuple(result.warnings), backend=backend,
-                    backend_reason=backend_reason, n_verts=len(X), folds=None,
-                    closed=None if binding is None else binding.is_closed,
-                    input_volume=result.input_volume, rebound=result.rebound,
-                    outside=result.outside, outside_follow=s.cage_outside == "FOLLOW" or
-                    isinstance(lattice, vp.Lattice))
-        if result.input_volume:
-            # Sizes: a lattice that mirrors space turns the volume's sign with the shape.
-            info["volume_percent"] = 100.0 * abs(result.volume / result.input_volume)
-            info["plain_percent"] = 100.0 * abs(result.plain_volume / result.input_volume)
-        if binding is not None:
-            if s.use_fold_attribute and faces_from == "mesh" and obj.data.library is None:
-                det = vp.jacobian_det(binding, result.points)
-                _float_attribute(obj.data, JACOBIAN_ATTRIBUTE, det)
-                info["folds"] = int((det <= 0).sum())
-            elif binding.n_verts <= FOLD_CHECK_MAX_VERTS:
-                info["folds"] = count_folds(binding, result.points)
-        _set_stats(obj, **info)
+        result = _evaluate(state, frame)
+        _publish(obj, state, frame, result, t0)
         return True
     except Exception as exc:  # a handler must never raise into Blender
         try:
@@ -591,6 +497,214 @@ def _update(obj, depsgraph, force, helpers_taken=None):
             state.signature = None
         _set_stats(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
         return False
+
+
+def _slot_to_solve(obj, depsgraph, force):
+    """The VP-FFD modifier of `obj` when this evaluation should solve it; else None, with the
+    panel told why (removed, switched off, hidden)."""
+    if not obj.vpffd.is_bound:
+        return None
+    mod = modifier.find(obj)
+    rendering = depsgraph.mode == "RENDER"
+    if mod is None:
+        if not rendering:
+            # Removed (X on the modifier) or applied (Ctrl+A): as with any modifier, the object
+            # is no longer deformed by it. Its settings stay for a later Bind.
+            release(obj)
+        return None
+    if not force and not (mod.show_render if rendering else mod.show_viewport):
+        if not rendering:
+            # Switched off in the viewport: the panel says so instead of an error or figures of
+            # an earlier solve; switching it on solves again.
+            _pause(obj, switched_off=True)
+        return None  # switched off for this evaluation, like any modifier
+    if not force and not _evaluated_here(obj, depsgraph):
+        # Hidden (H, Disable in Viewports, a hidden or excluded collection): Blender does not
+        # evaluate it, so nothing reaches the slot. Keep the offsets shown last and solve again
+        # when it is shown: it comes back as it was, with no error.
+        if not rendering:
+            _pause(obj, paused="the object is hidden: VP-FFD solves again when it is shown")
+        return None
+    return mod
+
+
+def _control(obj, state, depsgraph):
+    """The bound object's Lattice or cage, or None (zero offsets shown, the panel says why). A
+    lattice the user deleted is let go, as Blender's Lattice modifier lets go of it."""
+    s = obj.vpffd
+    lat_ob = s.lattice
+    if lat_ob is not None and not any(True for _ in lat_ob.users_scene) \
+            and depsgraph.mode != "RENDER":
+        # Deleted (X): Delete only unlinks an object that still has users, and these settings
+        # and the modifier's input are users (undo links it again: `relink_after_undo`).
+        state.deleted = lat_ob.name
+        s.lattice = None
+        modifier.set_lattice(obj, None)
+        lat_ob = None
+    if not _is_control(lat_ob):
+        _zero_offsets(obj, state)
+        _set_stats(obj, error=(f"lattice '{state.deleted}' was deleted: pick another, or Unbind"
+                               if lat_ob is None and state.deleted else _missing_control(lat_ob)))
+        return None
+    state.deleted = None
+    return lat_ob
+
+
+def _read(obj, state, mod, depsgraph, helpers_taken):
+    """The `_Frame` of this evaluation, or None when there is nothing to solve (the panel says
+    why). Raises ValueError for what the user must fix."""
+    extra = modifier.find_all(obj)[1:]
+    if extra:
+        raise ValueError(f"one VP-FFD modifier per object: remove {', '.join(repr(m.name) for m in extra)}")
+    rendering = depsgraph.mode == "RENDER"
+    # Read what reached the slot before touching the modifier: writing its inputs tags the
+    # object, and Blender 4.4+ then refuses to hand out its evaluated geometry.
+    ob_eval = obj.evaluated_get(depsgraph)
+    tap = modifier.read_tap(ob_eval, depsgraph)
+    stale_weights = False
+    if not rendering:
+        stale_weights = modifier.sync_inputs(obj, mod)
+        helper = modifier.helper(obj, mod, exclusive_of=helpers_taken or ())
+    else:
+        helper = modifier.get_input(mod, modifier.SOLVER_INPUT)
+    if helper is None:
+        raise ValueError("the VP-FFD modifier has no solver helper: Re-bind")
+    if helpers_taken is not None:
+        helpers_taken.add(helper)
+    lat_ob = _control(obj, state, depsgraph)
+    if lat_ob is None:
+        return None
+    if tap is None:
+        if not (mod.show_render if rendering else mod.show_viewport):
+            _set_stats(obj, error="the VP-FFD modifier is switched off: switch it on to solve")
+            return None
+        _zero_offsets(obj, state)   # a defined result: whatever reaches the slot, undeformed
+        state.signature = None      # solve again once something reaches it
+        _set_stats(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
+                              "Geometry Nodes modifier after it drops instances or point clouds?)")
+        return None
+    # Animated settings (volume scale, strength, ...) have this evaluation's values on the
+    # evaluated object only: a render's depsgraph does not write them back to the original.
+    s = state.settings = ob_eval.vpffd
+    frame = _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, not rendering)
+    frame.stale_weights = stale_weights
+    return frame
+
+
+def _control_inputs(obj, state, s, lat_ob, depsgraph, helper):
+    """(lattice or cage model, rest grid (N, 3), points now (N, 3), the lattice's own weights
+    (N,) or None, (depth, outside) of a cage or None, the control object's world matrix)."""
+    lat_eval = lat_ob.evaluated_get(depsgraph)
+    if lat_ob.type == "LATTICE":
+        lattice, grid = _lattice_rest(lat_ob, s)
+        points = meshio.lattice_points(lat_eval.data, "co_deform")
+        weights, cage_options = _lattice_weights(lat_ob), None
+    else:
+        lattice, grid, _ = _cage_model(state, obj, lat_ob, helper)
+        points = _cage_points(lat_eval, lattice.n_points)
+        weights, cage_options = None, (s.cage_depth, s.cage_outside)
+    if len(points) != lattice.n_points:
+        raise ValueError(f"lattice '{lat_ob.name}' has {len(points)} points, expected {lattice.n_points}")
+    return lattice, grid, points, weights, cage_options, meshio.matrix(lat_eval.matrix_world)
+
+
+def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, may_write):
+    """The `_Frame` of the tap `tap` (stale weights left for the caller)."""
+    X, weights, tapped_tris = tap
+    lattice, grid, points, lattice_weights, cage_options, M_lat = _control_inputs(
+        obj, state, s, lat_ob, depsgraph, helper)
+    M_ob = meshio.matrix(ob_eval.matrix_world)
+    for what, M in (("lattice", M_lat), ("mesh", M_ob)):
+        if not abs(linalg3.det3(M[:3, :3])) > 1e-30:
+            raise ValueError(f"the {what} object '{lat_ob.name if what == 'lattice' else obj.name}' "
+                             "is scaled to zero along an axis on this frame: there is no lattice "
+                             "space to deform in (the mesh shows undeformed)")
+    L = linalg3.matmul4(linalg3.affine_inverse(M_lat), M_ob)
+    axes, directions = _directions(s, M_lat)
+    editing = obj.mode == "EDIT"
+    tris, faces_from = _faces(state, obj, ob_eval, len(X), tapped_tris, mod, may_write, editing)
+    warnings = []
+    pins = _pins(s, obj, helper)
+    if len(pins) and faces_from != "mesh" and len(X) != len(obj.data.vertices):
+        warnings.append("pins are off: the vertex count that reaches VP-FFD is not the mesh's")
+        pins = pins[:0]
+    pin_targets = _pin_targets(s, pins, X, M_lat, M_ob)
+    mobility = _mobility(s, lat_ob)
+    correct = bool(axes or directions is not None or pin_targets)
+    if tris is None and correct:
+        warnings.append("the volume is not corrected on this update: the faces that reach "
+                        "VP-FFD are not known yet; they are passed along from the next "
+                        "evaluation on")
+        correct = False
+    settings = (axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
+                s.use_fold_attribute, cage_options, faces_from, state.faces_key, editing, type(lattice).__name__,
+                getattr(lattice, "shape", None), getattr(lattice, "interpolation", None))
+    arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions,
+              tris if faces_from == "tap" else None)
+    inputs = vp.FrameInputs(
+        positions=X, tris=tris, lattice=lattice, points=points, matrix=L, weights=weights,
+        lattice_weights=lattice_weights, strength=s.strength, correct=correct, axes=axes,
+        directions=directions, volume_scale=s.volume_scale, mobility=mobility, pins=pin_targets,
+        islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
+        dtype=np.float32)
+    return _Frame(mod=mod, helper=helper, inputs=inputs, signature=(settings, arrays),
+                  faces_from=faces_from, lattice_matrix=M_lat, warnings=warnings,
+                  stale_weights=False, editing=editing)
+
+
+def _unchanged(state, frame):
+    """Whether `frame` has the inputs of the last solve (its result is already shown)."""
+    if state.signature is None or state.signature[0] != frame.signature[0]:
+        return False
+    return all((a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+               for a, b in zip(state.signature[1], frame.signature[1]))
+
+
+def _evaluate(state, frame):
+    """The core's pipeline on `frame` (its solver picks the CPU or the GPU): a vp.FrameResult."""
+    state.backend = ("CPU", "")
+    return state.pipeline.evaluate(frame.inputs)
+
+
+def _publish(obj, state, frame, result, t0):
+    """Write the offsets to the solver helper, keep what the overlay and the next update need,
+    and give the panel its figures."""
+    X = frame.inputs.positions
+    lattice = frame.inputs.lattice
+    core_seconds = time.perf_counter() - t0
+    offsets = result.positions - X
+    if not np.isfinite(offsets).all():
+        raise ValueError("the solve produced non-finite offsets; nothing was written")
+    offsets32 = _write(state, frame.helper, offsets)
+    seconds = time.perf_counter() - t0
+    # Weights read before the vertex-group input changed are the old group's: solve again
+    # after the evaluation that the change brings.
+    state.signature, state.result = (None if frame.stale_weights else frame.signature), result
+    state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
+    edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
+    state.overlay = (meshio.transform(result.points, frame.lattice_matrix), edges)
+    binding = result.binding
+    backend, backend_reason = state.backend
+    s = state.settings
+    info = dict(error=None, seconds=seconds, core_seconds=core_seconds,
+                warnings=tuple(frame.warnings) + tuple(result.warnings), backend=backend,
+                backend_reason=backend_reason, n_verts=len(X), folds=None,
+                closed=None if binding is None else binding.is_closed,
+                input_volume=result.input_volume, rebound=result.rebound, outside=result.outside,
+                outside_follow=s.cage_outside == "FOLLOW" or isinstance(lattice, vp.Lattice),
+                editing=frame.editing)
+    if result.input_volume:
+        # Sizes: a lattice that mirrors space turns the volume's sign with the shape.
+        info["volume_percent"] = 100.0 * abs(result.volume / result.input_volume)
+        info["plain_percent"] = 100.0 * abs(result.plain_volume / result.input_volume)
+    if binding is not None:
+        if s.use_fold_attribute and frame.faces_from == "mesh" and obj.data.library is None:
+            det = vp.jacobian_det(binding, result.points)
+            _float_attribute(obj.data, JACOBIAN_ATTRIBUTE, det)
+            info["folds"] = int((det <= 0).sum())
+        elif binding.n_verts <= FOLD_CHECK_MAX_VERTS:
+            info["folds"] = count_folds(binding, result.points)
+    _set_stats(obj, **info)
 
 
 def _lattice_edges(shape):

@@ -63,9 +63,13 @@ def on_undo(*_args) -> None:
     """Undo and Redo restore the settings and the solver helpers' offsets but not the panel
     figures: solve the restored state again, so that the panel describes what is shown. The
     pipelines' caches stay: their keys hold every input, so a binding is reused exactly when the
-    restored inputs are the ones it was built from (no stall after an undo)."""
+    restored inputs are the ones it was built from (no stall after an undo). A lattice that undo
+    brings back after Delete is linked again (`engine.relink_after_undo`)."""
     engine.invalidate()
     try:
+        for scene in bpy.data.scenes:
+            for ob in engine.bound_objects(scene):
+                engine.relink_after_undo(ob, bpy.data.objects)
         context = bpy.context
         if context.scene is not None:
             _guarded(context.scene, context.evaluated_depsgraph_get())

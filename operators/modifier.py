@@ -24,7 +24,7 @@ from . import node_inputs
 MODIFIER_NAME = "VP-FFD"
 NODE_GROUP_NAME = "VP-FFD"
 _TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
-_VERSION = 5                 # the tag's value: groups of older versions are rebuilt
+_VERSION = 6                 # the tag's value: groups of older versions are rebuilt
 _KIND = "vpffd_tap_kind"     # how the group's tap is made: "INSTANCES" or "POINTS"
 LATTICE_INPUT = "Lattice"   # object input: makes the lattice or cage a dependency of the mesh
 SOLVER_INPUT = "Solver"     # object input: the helper holding the offsets
@@ -49,6 +49,16 @@ def _socket(ng, name, socket_type, in_out="INPUT", description=""):
     item = ng.interface.new_socket(name, in_out=in_out, socket_type=socket_type)
     item.description = description
     return item
+
+
+def _set_triangulation(node):
+    """Quads split on their first and third corners, n-gons by ear clipping: node properties up
+    to Blender 4.5, menu inputs from 5.0."""
+    if hasattr(node, "quad_method"):
+        node.quad_method, node.ngon_method = "FIXED", "CLIP"
+    else:
+        node.inputs["Quad Method"].default_value = "Fixed"
+        node.inputs["N-gon Method"].default_value = "Clip"
 
 
 def _store(N, link, geometry, data_type, domain, name, value=None):
@@ -214,7 +224,11 @@ def _build(ng):
 
     # Face tap (only when asked): one point per triangle of the triangulated input, carrying its
     # three vertex indices, in the triangle's own corner order.
+    # Split as Blender's own triangles of a mesh (quads on their first and third corners, n-gons
+    # by ear clipping): the volume of non-planar faces depends on the split, and VP-FFD measures
+    # every other input on those triangles.
     faces = N.new("GeometryNodeTriangulate")
+    _set_triangulation(faces)
     link(gin.outputs[0], faces.inputs["Mesh"])
     geometry = faces.outputs[0]
     for k, name in enumerate(CORNER_ATTRIBUTES):

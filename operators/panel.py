@@ -4,7 +4,9 @@ Bake and Status, with split properties and no animation decorators."""
 import bpy
 
 from . import bake, cage, engine, modifier
+from .status_line import LIVE_SOLVE_PATH, headline
 from .text import count, lines, sentence
+
 
 def _settings(context):
     ob = context.object
@@ -60,6 +62,9 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
             self.draw_cage(layout, context, ob)
             return
         s = ob.vpffd
+        # First line: what VP-FFD does to this object now (details in the Status sub-panel).
+        text, icon = headline(engine.status(ob), s.is_bound, s.is_bound and bake.using_cache(ob))
+        message(layout, context, text, icon=icon)
         col = layout.column()
         col.prop(s, "lattice")
         row = col.row(align=True)
@@ -191,8 +196,8 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
         layout = self.layout
         info = engine.status(ob)
         if bake.using_cache(ob):
-            message(layout, context, "playing the baked cache: VP-FFD is not solving (Bake > "
-                                     "Use Live Solve switches back)", icon="FILE_CACHE")
+            message(layout, context, f"playing the baked cache: VP-FFD is not solving "
+                                     f"({LIVE_SOLVE_PATH} switches back)", icon="FILE_CACHE")
             return
         if info.switched_off:
             message(layout, context, "the VP-FFD modifier is switched off in the viewport",
@@ -203,8 +208,11 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
             return
         if info.error:
             message(layout, context, info.error, icon="ERROR")
+        if info.editing:
+            message(layout, context, "Edit Mode: solved live from the mesh as edited", icon="EDITMODE_HLT")
         if info.volume_percent is not None:
-            message(layout, context, f"volume {info.volume_percent:.4f}% of its input "
+            what = "the mesh as edited" if info.editing else "its input"
+            message(layout, context, f"volume {info.volume_percent:.4f}% of {what} "
                                      f"(plain lattice: {info.plain_percent:.4f}%)", icon="CHECKMARK")
         if info.seconds is not None:
             message(layout, context, f"solved in {1e3 * info.seconds:.1f} ms on the {info.backend}, "

@@ -483,12 +483,32 @@ def probe_in_fresh_process(zip_path, user_resources, timeout=300):
                        f"stdout:\n{proc.stdout[-4000:]}\nstderr:\n{proc.stderr[-4000:]}")
 
 
+def run_in_fresh_process(zip_path, user_resources, script, timeout=600):
+    """Install and enable `zip_path` in a new interpreter (as `probe_in_fresh_process`), run the
+    Python file `script` there with `module` (the extension's module name) defined, and let the
+    interpreter end as Blender's does. Returns the CompletedProcess (text stdout and stderr:
+    Blender's own words at exit included)."""
+    env = dict(os.environ)
+    env[ENV] = os.path.abspath(user_resources)
+    env.pop("PYTHONPATH", None)
+    return subprocess.run(
+        [sys.executable, os.path.abspath(__file__), "run", os.path.abspath(zip_path),
+         os.path.abspath(script)], capture_output=True, text=True, timeout=timeout, env=env,
+        cwd=os.path.abspath(user_resources))
+
+
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "probe":
+    if len(sys.argv) == 4 and sys.argv[1] == "run":
+        sys.path[:] = [p for p in sys.path
+                       if os.path.realpath(p or ".") != os.path.realpath(REPO_ROOT)]
+        module = install_extension(sys.argv[2])
+        with open(sys.argv[3]) as fh:
+            exec(compile(fh.read(), sys.argv[3], "exec"), {"module": module, "__name__": "__vpffd_run__"})
+    elif len(sys.argv) == 3 and sys.argv[1] == "probe":
         # Run as a script: sys.path[0] is tests/, the repository root is not importable.
         sys.path[:] = [p for p in sys.path
                        if os.path.realpath(p or ".") != os.path.realpath(REPO_ROOT)]
         report = probe(sys.argv[2])
         print("VPFFD-PROBE-REPORT " + json.dumps(report), flush=True)
     else:
-        sys.exit(f"usage: {sys.argv[0]} probe ZIP")
+        sys.exit(f"usage: {sys.argv[0]} probe ZIP | run ZIP SCRIPT")

@@ -427,6 +427,62 @@ def test_renders_run_the_solver_with_the_render_depsgraph(ext, tmp_path):
     assert abs(eng.stats(ball)["volume_percent"] - 100) <= 100 * VOLUME_TOL
 
 
+def test_renders_leave_what_they_do_not_render_as_the_viewport_shows_it(ext, tmp_path):
+    """A bound mesh in a collection hidden from renders (the camera icon) or excluded from the
+    view layer (the checkbox) is not rendered: the render neither solves nor clears it, and the
+    viewport keeps its corrected shape with no error; a rendered one is solved as usual."""
+    eng = _engine(ext)
+    scene = bpy.context.scene
+    lat = _lattice()
+    _animate_squash(lat, 0.6)
+    balls = {}
+    for name in ("Rendered", "NoRender", "Excluded"):
+        ball = balls[name] = _sphere()
+        ball.name = name
+        if name != "Rendered":
+            coll = bpy.data.collections.new(f"{name} Collection")
+            scene.collection.children.link(coll)
+            scene.collection.objects.unlink(ball)
+            coll.objects.link(ball)
+        _bind(ball, lattice=lat, axes="XY")
+    scene.frame_set(15)
+    shown = {name: evaluated_world(ball)[0] for name, ball in balls.items()}
+    bpy.data.collections["NoRender Collection"].hide_render = True
+    bpy.context.view_layer.layer_collection.children["Excluded Collection"].exclude = True
+    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+    scene.collection.objects.link(cam)
+    cam.location, cam.rotation_euler = (0, -5, 0), (1.5708, 0, 0)
+    scene.camera = cam
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x = scene.render.resolution_y = 32
+    scene.render.filepath = str(tmp_path / "frame_")
+    scene.frame_start, scene.frame_end = 14, 16
+    helper_of = ext.module.operators.modifier.helper
+    during = []
+
+    def record(scene, depsgraph=None):     # runs after VP-FFD's own frame handler
+        if depsgraph is not None and depsgraph.mode == "RENDER":
+            during.append({name: (eng.stats(ball).get("error"), len(helper_of(ball).data.vertices))
+                           for name, ball in balls.items()})
+
+    bpy.app.handlers.frame_change_post.append(record)
+    try:
+        bpy.ops.render.render(animation=True)
+    finally:
+        bpy.app.handlers.frame_change_post.remove(record)
+    assert len(during) >= 3
+    for seen in during:
+        for name, (error, n_offsets) in seen.items():
+            assert error is None and n_offsets == len(balls[name].data.vertices), (name, seen)
+    scene.frame_set(15)
+    for name in ("Rendered", "NoRender"):
+        np.testing.assert_allclose(evaluated_world(balls[name])[0], shown[name], atol=1e-6)
+    bpy.context.view_layer.layer_collection.children["Excluded Collection"].exclude = False
+    scene.frame_set(15)
+    np.testing.assert_allclose(evaluated_world(balls["Excluded"])[0], shown["Excluded"], atol=1e-6)
+    assert eng.stats(balls["Excluded"]).get("error") is None
+
+
 def test_bind_appends_the_modifier_and_rebind_leaves_it_where_the_user_put_it(ext):
     """Bind adds VP-FFD where Blender's Add Modifier would (the end of the stack), so a modifier
     already there comes before it and is deformed with the mesh; Re-bind does not move it."""
@@ -516,18 +572,21 @@ def _squashed_bound_ball(eng):
     return ball, lat
 
 
-def test_leaving_edit_mode_unchanged_clears_the_paused_message(ext):
+def test_entering_and_leaving_edit_mode_unchanged_keeps_shape_and_figures(ext):
     eng = _engine(ext)
     ball, _ = _squashed_bound_ball(eng)
+    shown = evaluated_world(ball)[0]
     bpy.context.view_layer.objects.active = ball
     bpy.ops.object.mode_set(mode="EDIT")
     bpy.context.view_layer.update()
     info = eng.stats(ball)
-    assert "Edit Mode" in (info.get("paused") or "") and info.get("error") is None
-    assert "volume_percent" not in info, "figures of the last solve are not shown as current"
+    assert info.get("error") is None and info.get("editing") and "paused" not in info, info
+    assert info.get("volume_percent") is not None, "the mesh as edited is solved live"
     bpy.ops.object.mode_set(mode="OBJECT")         # nothing moved: the inputs are as before
     bpy.context.view_layer.update()
-    assert eng.stats(ball).get("error") is None
+    info = eng.stats(ball)
+    assert info.get("error") is None and not info.get("editing")
+    np.testing.assert_array_equal(evaluated_world(ball)[0], shown)
 
 
 def test_switched_off_modifier_says_so_and_switching_on_solves_again(ext):

@@ -292,3 +292,31 @@ def test_hide_and_unhide_bring_the_corrected_shape_back(ext, how):
     assert np.abs(after - shown).max() > 1e-3, "the lattice change shows"
     assert eng.stats(ball).get("error") is None, eng.stats(ball)
     assert abs(evaluated_volume(ball) / rest - 1) <= 1e-5
+
+
+def test_the_panels_first_line_says_what_is_shown(ext):
+    """The main panel's first line (`status_line.headline`): the volume kept, measured here on the
+    evaluated mesh, or why nothing is solved."""
+    line = ext.module.operators.status_line.headline
+    engine = _engine(ext)
+    ball, lat = _ball(), _lattice()
+
+    def first_line():
+        return line(engine.status(ball), ball.vpffd.is_bound, False)
+
+    assert first_line()[0].startswith("not bound")
+    rest_volume = evaluated_volume(ball)
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    text, icon = first_line()
+    measured = 100.0 * evaluated_volume(ball) / rest_volume
+    assert (text, icon) == (f"volume {measured:.3f}% of its input", "CHECKMARK")
+    ball.hide_set(True)
+    bpy.context.scene.frame_set(2)
+    assert first_line() == ("the object is hidden: VP-FFD solves again when it is shown", "PAUSE")
+    ball.hide_set(False)
+    bpy.context.scene.frame_set(3)
+    assert first_line()[1] == "CHECKMARK"
+    _delete(lat)
+    bpy.context.scene.frame_set(4)
+    text, icon = first_line()
+    assert icon == "ERROR" and "'Lattice' was deleted" in text

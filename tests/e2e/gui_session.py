@@ -17,6 +17,7 @@ import sys
 import time
 import traceback
 
+import bmesh
 import bpy
 import numpy as np
 
@@ -58,10 +59,20 @@ def show_modifier_tab():
             area.spaces[0].context = "MODIFIER"
 
 
-def camera_view():
-    """Look through the scene camera in the window's 3D viewport, as Numpad 0 does."""
+def framed(objects):
+    """(whether the window's 3D viewport looks through the camera, the share of the view's width
+    that the objects' bounds span, whether every bound corner lies inside the view)."""
+    from bpy_extras.view3d_utils import location_3d_to_region_2d
+    from mathutils import Vector
     ctx = window_context()
-    ctx["area"].spaces[0].region_3d.view_perspective = "CAMERA"
+    region, rv3d = ctx["region"], ctx["area"].spaces[0].region_3d
+    xs, inside = [], True
+    for ob in objects:
+        for corner in ob.bound_box:
+            p = location_3d_to_region_2d(region, rv3d, ob.matrix_world @ Vector(corner))
+            inside = inside and p is not None and 0 <= p.x <= region.width and 0 <= p.y <= region.height
+            xs.append(p.x if p is not None else np.nan)
+    return rv3d.view_perspective == "CAMERA", float(np.ptp(xs) / region.width), inside
 
 
 def select_only(ob):
@@ -165,8 +176,11 @@ def session():
     ball_name, lat_name = ball.name, lattice.name
     scene = bpy.context.window_manager.windows[0].scene
     scene.frame_set(18)                       # the squash
-    camera_view()
     yield 1.0
+    demo_objects = [ob for ob in scene.objects if ob.type == "MESH" and ob.name.startswith("Ball")]
+    camera, share, inside = framed(demo_objects)
+    check("the demo frames itself: camera view, the balls in view and not small",
+          camera and inside and share >= 0.25, (camera, share, inside, [o.name for o in demo_objects]))
     r, _ = ratio(ball)
     info = eng.status(ball)
     check("squash keeps the volume (evaluated mesh)", abs(r - 1) <= VOLUME_TOL, r)
@@ -266,8 +280,39 @@ def session():
         op("object.mode_set", mode="OBJECT")
         yield 0.3
 
-    # Ctrl+A on the VP-FFD modifier (Blender's own Apply): the mesh keeps what was shown.
+    # The mesh's own Edit Mode (Tab): the deformation stays, solved live from the mesh as edited.
     ball = bpy.data.objects[ball_name]        # undo replaced the Python objects
+    _, shown = ratio(ball)
+    select_only(ball)
+    op("object.mode_set", mode="EDIT")
+    yield 0.8
+    co, _ = evaluated(ball)
+    check("mesh Edit Mode: the deformed shape stays", float(np.abs(co - shown).max()) <= 1e-6,
+          float(np.abs(co - shown).max()))
+    op("mesh.select_all", action="SELECT")
+    op("transform.resize", value=(1.0, 1.0, 1.3))
+    yield 0.8
+    bm = bmesh.from_edit_mesh(ball.data)
+    edited = np.array([tuple(v.co) for v in bm.verts], np.float32)
+    co, tris = evaluated(ball)
+    info = eng.status(ball)
+    r = volume(co, tris) / volume(edited, tris)
+    check("mesh Edit Mode: the edit shows deformed, the volume of the mesh as edited kept",
+          abs(r - 1) <= VOLUME_TOL and float(np.abs(co - shown).max()) > 1e-2, (r, float(np.abs(co - shown).max())))
+    check("mesh Edit Mode: the panel says it solves the mesh as edited", info.editing
+          and info.error is None and abs(info.volume_percent / 100 - r) <= 1e-6, info)
+    yield from screenshot("editmode")
+    op("ed.undo")                             # the edit goes; Edit Mode stays
+    yield 0.8
+    op("object.mode_set", mode="OBJECT")
+    yield 0.8
+    ball = bpy.data.objects[ball_name]
+    r, back = ratio(ball)
+    check("after the mesh's Edit Mode: the shape before it", float(np.abs(back - shown).max()) <= 1e-5
+          and abs(r - 1) <= VOLUME_TOL, (float(np.abs(back - shown).max()), r))
+
+    # Ctrl+A on the VP-FFD modifier (Blender's own Apply): the mesh keeps what was shown.
+    ball = bpy.data.objects[ball_name]
     check("after undo and redo the panel matches the mesh",
           abs(eng.status(ball).volume_percent / 100 - abs(ratio(ball)[0])) <= 1e-6,
           (eng.status(ball).volume_percent, ratio(ball)[0]))
@@ -293,22 +338,70 @@ def session():
     r, _ = ratio(ball)
     check("undo of Apply: bound and correcting again", ball.vpffd.is_bound and abs(r - 1) <= VOLUME_TOL, r)
 
-    # Delete the lattice (X): the mesh shows undeformed and the panel says why.
+    # Delete the lattice (X): the mesh shows undeformed and the panel says why. A twin with
+    # Blender's Lattice modifier on the same lattice shows what undo and redo should do.
+    op("mesh.primitive_ico_sphere_add", radius=0.5, location=(0.0, 3.0, 1.0))
+    yield 0.3
+    twin_name = bpy.context.window_manager.windows[0].view_layer.objects.active.name
+    op("object.modifier_add", type="LATTICE")
+    bpy.data.objects[twin_name].modifiers[-1].object = lattice
+    op("ed.undo_push", message="Twin's lattice")
+    yield 0.5
+
+    def linked():
+        ball, twin = bpy.data.objects[ball_name], bpy.data.objects[twin_name]
+        return (ball.vpffd.lattice is not None, twin.modifiers[-1].object is not None
+                and any(True for _ in twin.modifiers[-1].object.users_scene))
+
+    _, shown = ratio(ball)
     select_only(lattice)
     op("object.delete")
     yield 0.8
+    ball = bpy.data.objects[ball_name]
     co, _ = evaluated(ball)
     own, _ = mesh_arrays(ball.data)
     info = eng.status(ball)
     check("deleted lattice: the mesh shows undeformed", float(np.abs(co - own).max()) <= 1e-6,
           float(np.abs(co - own).max()))
     check("deleted lattice: the panel says so", "deleted" in (info.error or ""), info.error)
+    # One Ctrl+Z brings the lattice, the link, the corrected shape and the panel back, as it
+    # brings back the twin's; Ctrl+Shift+Z deletes it again; Ctrl+Z once more restores it.
+    for step, expect in (("ed.undo", True), ("ed.redo", False), ("ed.undo", True)):
+        op(step)
+        yield 0.8
+        ball = bpy.data.objects[ball_name]
+        r, now = ratio(ball)
+        error = eng.status(ball).error
+        if expect:
+            check(f"after Delete, {step}: linked again in one step, as Blender's Lattice modifier",
+                  linked() == (True, True) and error is None, (linked(), error))
+            check(f"after Delete, {step}: the corrected shape is back",
+                  float(np.abs(now - shown).max()) <= 1e-6 and abs(r - 1) <= VOLUME_TOL,
+                  (float(np.abs(now - shown).max()), r))
+        else:
+            check(f"after Delete, {step}: deleted again, the panel says so",
+                  linked() == (False, False) and "deleted" in (error or ""), (linked(), error))
+
+    # Unbind, then Ctrl+Z: bound and correcting again, the same shape.
+    ball = bpy.data.objects[ball_name]
+    select_only(ball)
+    op("object.vpffd_unbind")
+    yield 0.5
+    ball = bpy.data.objects[ball_name]
+    check("Unbind: the mesh shows its own shape", not ball.vpffd.is_bound and float(
+        np.abs(evaluated(ball)[0] - mesh_arrays(ball.data)[0]).max()) <= 1e-6)
+    op("ed.undo")
+    yield 0.8
+    ball = bpy.data.objects[ball_name]
+    r, now = ratio(ball)
+    check("undo of Unbind: bound, the same corrected shape", ball.vpffd.is_bound
+          and float(np.abs(now - shown).max()) <= 1e-6 and eng.status(ball).error is None,
+          (ball.vpffd.is_bound, float(np.abs(now - shown).max()), eng.status(ball).error))
 
     # A bake in progress, on the cage demo (slow enough to be seen).
     op("object.vpffd_demo_squeezed_tube")
     yield 0.5                                 # the Properties editor learns the new active object
     show_modifier_tab()
-    camera_view()
     tube = bpy.context.window_manager.windows[0].view_layer.objects.active
     path = os.path.join(OUT, "tube.pc2")
     with bpy.context.temp_override(**window_context(), object=tube, active_object=tube):
@@ -319,6 +412,27 @@ def session():
     while not os.path.exists(path) and time.time() - t0 < 120:
         yield 0.5
     check("the bake finishes in the window", os.path.exists(path))
+    yield 0.5
+
+    def playing(ob):
+        """Names and viewport switches of the modifiers: what plays the tube."""
+        return [(m.type, m.show_viewport) for m in ob.modifiers]
+
+    tube_name = tube.name
+    baked = playing(tube)
+    # Ctrl+Z after the bake: the live solve again (the file stays: undo does not touch files);
+    # Ctrl+Shift+Z: the cache plays again.
+    op("ed.undo")
+    yield 0.8
+    tube = bpy.data.objects[tube_name]
+    check("undo of a bake: the live solve plays, the volume kept",
+          playing(tube)[-1] == ("NODES", True) and all(t != "MESH_CACHE" or not on for t, on in playing(tube))
+          and eng.status(tube).error is None and eng.status(tube).volume_percent is not None,
+          (baked, playing(tube), eng.status(tube).error))
+    op("ed.redo")
+    yield 0.8
+    tube = bpy.data.objects[tube_name]
+    check("redo of a bake: the cache plays again", playing(tube) == baked, (baked, playing(tube)))
 
     # Esc cancels a bake in progress: a long range, a real Escape key press once the bake has
     # stepped through a few frames; nothing is written, the live solve stays, the frame returns.
@@ -370,6 +484,10 @@ def session():
           fitted is not None and fitted.type == "LATTICE" and sphere.vpffd.is_bound
           and sphere.vpffd.lattice == fitted, (getattr(fitted, "type", None), sphere.vpffd.is_bound))
     fitted_name, sphere_name = fitted.name, sphere.name
+    with bpy.context.temp_override(**window_context()):
+        bpy.ops.view3d.view_selected()        # Numpad . on the fitted lattice, for the picture
+    show_modifier_tab()
+    yield from screenshot("fit")
     op("ed.undo")
     yield 0.8
     sphere = bpy.data.objects.get(sphere_name)

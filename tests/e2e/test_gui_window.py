@@ -9,6 +9,8 @@ independently) or the panel's figures against it.
 Skipped only when this machine cannot make the chroot (not root, no debootstrap) or start a
 virtual display; anything else failing fails the test. About 1-2 minutes.
 """
+import os
+
 import pytest
 
 from . import blender_chroot as bc
@@ -21,6 +23,8 @@ def session():
         results, shots, work = gw.run_session()
     except (bc.ChrootUnavailable, gw.DisplayUnavailable) as exc:
         pytest.skip(str(exc))
+    with open(os.path.join(work, "gui.log")) as fh:
+        results["log"] = fh.read()           # Blender's own output, its words at quit included
     yield results, shots
     bc.remove_workdir(work)
 
@@ -43,11 +47,21 @@ def test_every_check_in_the_window_holds(session):
 
 @pytest.mark.gui
 @pytest.mark.e2e
+def test_blender_quits_without_unfreed_memory(session):
+    """The session (demos, undo through Delete, Apply, bakes, Lattice Deform Selected) ends with
+    Blender's own quit; Blender prints "Not freed memory blocks" there when memory was left."""
+    results, _ = session
+    assert "Blender quit" in results["log"], results["log"][-2000:]
+    assert "Not freed memory blocks" not in results["log"], results["log"][-2000:]
+
+
+@pytest.mark.gui
+@pytest.mark.e2e
 def test_screenshots_show_the_window(session):
     import numpy as np
     from PIL import Image
     _, shots = session
-    assert set(shots) == {"panel", "overlay", "bake"}
+    assert set(shots) == {"panel", "overlay", "editmode", "bake", "fit"}
     for name, path in shots.items():
         img = np.asarray(Image.open(path))
         assert img.shape[:2] == (gw.SCREEN[1], gw.SCREEN[0]), name

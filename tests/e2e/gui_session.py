@@ -486,6 +486,7 @@ def session():
     fitted_name, sphere_name = fitted.name, sphere.name
     with bpy.context.temp_override(**window_context()):
         bpy.ops.view3d.view_selected()        # Numpad . on the fitted lattice, for the picture
+        bpy.ops.view3d.zoom(delta=-2)
     show_modifier_tab()
     yield from screenshot("fit")
     op("ed.undo")

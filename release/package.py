@@ -1,0 +1,201 @@
+"""`./dev package`: the packages users install, built with Blender's own extension builder.
+
+    ./dev package                  # dist/: one package per platform with numba's wheels, and a
+                                   # universal NumPy-only one
+    ./dev package --platform linux-x64 --python 3.13   # only what a test needs
+    ./dev package --lock           # download every wheel once and write release/wheels.lock
+
+The compiled kernels run on numba (with llvmlite), bundled as the unmodified wheels PyPI serves,
+under ./wheels/ of the package and listed in its manifest (Blender's manual, "Extensions > Python
+Wheels"); Blender installs only the wheels that match its Python. The committed manifest lists no
+wheels, so building from a fresh clone (the README's install, every test) needs no download.
+
+Every wheel is pinned by version and checked against its SHA-256 in `release/wheels.lock`
+before it is packed. Downloads are kept in `.cache/wheels/` (git-ignored); the build folder is
+`build/package/` and the packages go to `dist/` (both git-ignored).
+"""
+import argparse
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tomllib
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+sys.path.insert(0, ROOT)
+
+from tests import extension_harness as eh  # noqa: E402  (Blender's builder, through bpy)
+
+PINS = ("numba==0.68.1", "llvmlite==0.50.0")
+#: Blender's platform names -> (pip platform tag, Python versions numba 0.68.1 has wheels for).
+#: No macos-x64 wheels exist for it: that platform gets the universal NumPy-only package.
+PLATFORMS = {
+    "linux-x64": ("manylinux_2_28_x86_64", ("3.11", "3.13", "3.14")),
+    "windows-x64": ("win_amd64", ("3.11", "3.13", "3.14")),
+    "macos-arm64": ("macosx_12_0_arm64", ("3.11", "3.13", "3.14")),
+    "windows-arm64": ("win_arm64", ("3.13",)),
+}
+LOCK = os.path.join(HERE, "wheels.lock")
+CACHE = os.path.join(ROOT, ".cache", "wheels")
+BUILD = os.path.join(ROOT, "build", "package")
+DIST = os.path.join(ROOT, "dist")
+
+
+class PackageError(RuntimeError):
+    """A wheel could not be fetched or checked, or Blender's builder refused the package."""
+
+
+def read_lock(path=LOCK):
+    """{(platform, python): [(file name, sha256), ...]} from the lock file."""
+    out = {}
+    with open(path) as fh:
+        for line in fh:
+            line = line.split("#", 1)[0].strip()
+            if line:
+                platform, python, name, digest = line.split()
+                out.setdefault((platform, python), []).append((name, digest))
+    return out
+
+
+def sha256(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def download(platform, python, dest=CACHE):
+    """Fetch the pinned wheels for one platform and Python version into `dest`; their paths."""
+    tag, _ = PLATFORMS[platform]
+    target = os.path.join(dest, f"{platform}-{python}")
+    os.makedirs(target, exist_ok=True)
+    cmd = [sys.executable, "-m", "pip", "download", *PINS, "--no-deps", "--only-binary=:all:",
+           "--python-version", python, "--platform", tag, "--dest", target, "--quiet",
+           "--disable-pip-version-check"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise PackageError(f"pip could not download {' '.join(PINS)} for {platform}, Python "
+                           f"{python}:\n{proc.stderr[-2000:]}")
+    names = sorted(n for n in os.listdir(target) if n.endswith(".whl")
+                   and any(n.startswith(p.split("==")[0] + "-" + p.split("==")[1] + "-") for p in PINS))
+    return [os.path.join(target, n) for n in names]
+
+
+def checked_wheels(platform, python, lock):
+    """Paths of the locked wheels for (platform, python), downloaded when missing, each checked
+    against its SHA-256; PackageError on any mismatch."""
+    wanted = lock.get((platform, python))
+    if not wanted:
+        raise PackageError(f"release/wheels.lock has no wheels for {platform}, Python {python}")
+    folder = os.path.join(CACHE, f"{platform}-{python}")
+    if not all(os.path.isfile(os.path.join(folder, name)) for name, _ in wanted):
+        download(platform, python)
+    paths = []
+    for name, digest in wanted:
+        path = os.path.join(folder, name)
+        if not os.path.isfile(path):
+            raise PackageError(f"{name} was not downloaded (is the pin in the lock file right?)")
+        if sha256(path) != digest:
+            raise PackageError(f"{name}: SHA-256 {sha256(path)} is not the locked {digest}; "
+                               "nothing was packed")
+        paths.append(path)
+    return paths
+
+
+def write_lock(path=LOCK):
+    """Download every pinned wheel and record its SHA-256 (run when a pin changes)."""
+    lines = [f"# {' '.join(PINS)} from PyPI: Blender platform, Python, wheel, SHA-256.",
+             "# Written by `./dev package --lock`; `./dev package` packs nothing that differs."]
+    for platform, (_, pythons) in PLATFORMS.items():
+        for python in pythons:
+            for wheel in download(platform, python):
+                lines.append(f"{platform} {python} {os.path.basename(wheel)} {sha256(wheel)}")
+    with open(path, "w") as fh:
+        fh.write("\n".join(lines) + "\n")
+    return path
+
+
+def _manifest_with(text, wheels, platforms):
+    """The committed manifest's text with `wheels` and `platforms` added (top-level keys, before
+    the first table)."""
+    lines = ["wheels = [", *[f'  "./wheels/{os.path.basename(w)}",' for w in wheels], "]",
+             "platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]", ""]
+    head, sep, rest = text.partition("\n[")
+    return head.rstrip("\n") + "\n\n" + "\n".join(lines) + sep + rest
+
+
+def stage(wheels, platforms, folder):
+    """A source folder for Blender's builder: the extension's files as the committed manifest
+    packs them, the wheels under ./wheels/, and a manifest that lists both."""
+    if os.path.isdir(folder):
+        shutil.rmtree(folder)
+    for rel in eh.planned_files(ROOT):
+        os.makedirs(os.path.join(folder, os.path.dirname(rel)), exist_ok=True)
+        shutil.copy2(os.path.join(ROOT, rel), os.path.join(folder, rel))
+    os.makedirs(os.path.join(folder, "wheels"), exist_ok=True)
+    for w in wheels:
+        shutil.copy2(w, os.path.join(folder, "wheels", os.path.basename(w)))
+    with open(os.path.join(ROOT, "blender_manifest.toml")) as fh:
+        text = _manifest_with(fh.read(), wheels, platforms)
+    tomllib.loads(text)                                   # still TOML
+    with open(os.path.join(folder, "blender_manifest.toml"), "w") as fh:
+        fh.write(text)
+    return folder
+
+
+def build(platforms, pythons=None, out=DIST, universal=True):
+    """Build the packages; returns their paths. `platforms`: Blender platform names; `pythons`:
+    limit the wheels to these Python versions (None: every version numba has)."""
+    lock = read_lock()
+    os.makedirs(out, exist_ok=True)
+    made = []
+    if universal:
+        made.append(eh.build_extension_zip(ROOT, out))      # NumPy only: no wheels, any platform
+    if platforms:
+        wheels = []
+        for platform in platforms:
+            for python in PLATFORMS[platform][1]:
+                if pythons is None or python in pythons:
+                    wheels += checked_wheels(platform, python, lock)
+        folder = stage(wheels, platforms, os.path.join(BUILD, "source"))
+        rc, messages = eh.run_extension_cli(
+            "build", "--source-dir", folder, "--output-dir", out, "--split-platforms",
+            "--valid-tags", eh.blender_tags_file(), timeout=1800)
+        if eh._failed(rc, messages):
+            raise PackageError("Blender's builder refused the package:\n"
+                               + "\n".join(f"{k}: {m}" for k, m in messages))
+        manifest = eh.read_manifest(ROOT)
+        for platform in platforms:
+            path = os.path.join(out, f"{manifest['id']}-{manifest['version']}-{platform.replace('-', '_')}.zip")
+            if not os.path.isfile(path):
+                raise PackageError(f"the builder made no {os.path.basename(path)}: {messages}")
+            eh.validate_manifest(path)
+            made.append(path)
+    return made
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="./dev package", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--platform", action="append", choices=sorted(PLATFORMS),
+                    help="only this platform (repeatable; default: all)")
+    ap.add_argument("--python", action="append", help="only wheels for this Python (e.g. 3.13)")
+    ap.add_argument("--out", default=DIST, help="output folder (default: dist/)")
+    ap.add_argument("--lock", action="store_true", help="download every wheel, rewrite wheels.lock")
+    args = ap.parse_args(argv)
+    try:
+        if args.lock:
+            print(f"package: wrote {os.path.relpath(write_lock(), ROOT)}")
+            return 0
+        for path in build(args.platform or list(PLATFORMS), args.python, args.out):
+            print(f"package: {os.path.relpath(path, ROOT)}  {os.path.getsize(path) / 2 ** 20:.1f} MiB")
+    except (PackageError, eh.ExtensionBuildError, eh.ExtensionValidationError) as exc:
+        print(f"package: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

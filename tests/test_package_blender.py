@@ -1,0 +1,86 @@
+"""`./dev package`: the linux-x64 package with numba's wheels, built by Blender's own builder from
+pinned, hash-checked wheels, installs through Blender's own installer into a fresh bpy (the
+newest and 4.2 LTS in the matrix), which puts the wheels for its own Python on its path: numba
+imports from the extension's wheels and compiles a function. The universal package has none."""
+import json
+import os
+import sys
+import zipfile
+
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+from release import package  # noqa: E402
+from . import extension_harness as eh  # noqa: E402
+
+pytestmark = pytest.mark.blender
+
+PY = f"{sys.version_info.major}.{sys.version_info.minor}"
+
+SESSION = r'''
+import json, sys, sysconfig
+import numba
+from numba import njit
+
+
+@njit(cache=False)
+def dot(a, b):
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i] * b[i]
+    return s
+
+
+import numpy as np
+x = np.arange(5.0)
+print("VPFFD-NUMBA " + json.dumps({"version": numba.__version__, "file": numba.__file__,
+                                   "dot": dot(x, x), "python": sys.version}), flush=True)
+'''
+
+
+@pytest.fixture(scope="module")
+def linux_package(tmp_path_factory):
+    out = tmp_path_factory.mktemp("dist")
+    return package.build(["linux-x64"], [PY], out=str(out), universal=True)
+
+
+def test_the_platform_package_holds_only_its_locked_wheels(linux_package):
+    universal, linux = linux_package
+    lock = package.read_lock()
+    locked = {name for name, _ in lock[("linux-x64", PY)]}
+    with zipfile.ZipFile(linux) as zf:
+        wheels = {n.split("/", 1)[1] for n in zf.namelist() if n.startswith("wheels/")}
+        manifest = zf.read("blender_manifest.toml").decode()
+    assert wheels == locked
+    assert 'platforms = ["linux-x64"]' in manifest
+    with zipfile.ZipFile(universal) as zf:
+        assert not [n for n in zf.namelist() if n.startswith("wheels/")]
+    eh.validate_manifest(linux)
+
+
+def test_a_wheel_that_differs_from_the_lock_is_refused(tmp_path, monkeypatch):
+    lock = package.read_lock()
+    name, _ = lock[("linux-x64", PY)][0]
+    bad = {k: [(n, "0" * 64 if n == name else d) for n, d in v] for k, v in lock.items()}
+    monkeypatch.setattr(package, "read_lock", lambda path=None: bad)
+    with pytest.raises(package.PackageError, match="SHA-256"):
+        package.build(["linux-x64"], [PY], out=str(tmp_path), universal=False)
+    assert not os.listdir(tmp_path)
+
+
+def test_numba_from_the_package_runs_in_blender(linux_package, tmp_path):
+    _, linux = linux_package
+    script = tmp_path / "numba_session.py"
+    script.write_text(SESSION)
+    user = tmp_path / "user"
+    user.mkdir()
+    proc = eh.run_in_fresh_process(linux, str(user), str(script))
+    out = proc.stdout + proc.stderr
+    line = next((l for l in proc.stdout.splitlines() if l.startswith("VPFFD-NUMBA ")), None)
+    assert line is not None, out[-4000:]
+    report = json.loads(line[len("VPFFD-NUMBA "):])
+    assert report["version"] == "0.68.1"
+    assert report["dot"] == 30.0
+    assert os.path.realpath(report["file"]).startswith(os.path.realpath(str(user))), \
+        "numba comes from the wheels Blender installed for the extension"

@@ -8,6 +8,7 @@
 
 Method: Hahmann et al., "Volume Preserving FFD for Programmable Graphics Hardware" (2011).
 """
+from . import compiled
 from .bases import INTERPOLATIONS
 from .binder import bind
 from .binding import Binding

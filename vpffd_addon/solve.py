@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import tolerances as tol
-from .steps import CAPABILITIES, NumpySteps
+from .compiled import default_steps
+from .steps import CAPABILITIES
 from .volume import face_volumes
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
@@ -120,7 +121,7 @@ class _State:
         # P is updated alongside D so that points with zero offset come back bit-identical.
         self.P = np.array(points, dtype=np.float64)
         self.D = self.P - b.lattice.rest_points
-        self.k = (steps or NumpySteps)(b)           # the per-slot work (CPU, or GPU kernels)
+        self.k = (steps or default_steps)(b)        # the per-slot work (NumPy, compiled, or GPU)
         self.mob = mobility
         self.pin_slots, self.pin_targets, self.pin_index = pins
         self.pin_rows = b._rows(self.pin_slots) if len(self.pin_slots) else None
@@ -344,8 +345,9 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     pins: (vertex index, (x, y, z) target) pairs; each pinned vertex lands on its target along the
         correction directions (Problem 2, eq. 21, any number of pins).
     islands: keep the volume of each connected component separately.
-    steps: a callable ``steps(binding)`` giving the per-slot work (`steps.NumpySteps`, the default,
-        or the GPU's); options it cannot do raise ValueError before anything is computed.
+    steps: a callable ``steps(binding)`` giving the per-slot work (default `compiled.default_steps`:
+        the compiled steps once `compiled.load()` succeeded, else `steps.NumpySteps`; or the GPU's);
+        options it cannot do raise ValueError before anything is computed.
     Returns a `Solution`. Raises ValueError for bad input, or when the volume must change but cannot
     along any direction; never returns NaN.
     """

@@ -1,0 +1,88 @@
+"""The compiled kernels (`vpffd_addon.compiled`, numba) against the NumPy steps they stand in for:
+the same gradient, the same solves (vertices to 1e-6 of the lattice's size, volumes to 1e-7),
+the same result on every run; and the NumPy path, with the reason in words, where numba cannot be
+imported."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba", reason="numba is not installed in this environment")
+
+import vpffd_addon as vp  # noqa: E402
+from vpffd_addon import compiled  # noqa: E402
+from vpffd_addon.steps import NumpySteps  # noqa: E402
+
+pytestmark = pytest.mark.core
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def kernels():
+    assert compiled.load(), compiled.why()
+    yield compiled
+    compiled.unload()
+
+
+def _problem(dtype, n_sub=4, islands=False, seed=3):
+    rng = np.random.default_rng(seed)
+    v, f = vp.icosphere(n_sub, 0.7)
+    if islands:
+        v2, f2 = vp.icosphere(2, 0.2)
+        v, f = np.vstack([v, v2 + 0.45]), np.vstack([f, f2 + len(v)])
+    lat = vp.Lattice((5, 4, 6), ("BSPLINE", "CARDINAL", "LINEAR"))
+    b = vp.bind(lat, v * [1.0, 0.9, 1.1], f, dtype=dtype)
+    P = lat.rest_points + rng.normal(0, 0.04, lat.rest_points.shape)
+    P[:, 2] *= 0.75
+    return b, P
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_compiled_gradient_equals_numpys(kernels, dtype):
+    b, P = _problem(dtype)
+    D = P - b.lattice.rest_points
+    ref, fast = NumpySteps(b), kernels.CompiledSteps(b)
+    for axis in range(3):
+        g_ref, g = ref.axis_gradient(axis, D), fast.axis_gradient(axis, D)
+        scale = np.abs(g_ref).max()
+        assert np.abs(g - g_ref).max() <= 1e-12 * scale
+
+
+@pytest.mark.parametrize("dtype,islands,axes", [(np.float32, False, "XYZ"), (np.float64, False, "XY"),
+                                                (np.float32, True, "XYZ"), (np.float64, True, "Z")])
+def test_solves_with_the_compiled_steps_equal_numpys(kernels, dtype, islands, axes):
+    b, P = _problem(dtype, islands=islands)
+    assert isinstance(compiled.default_steps(b), compiled.CompiledSteps)
+    ref = vp.solve.solve(b, P, axes=axes, islands=islands, steps=NumpySteps)
+    out = b.solve(P, axes=axes, islands=islands)            # the default: the compiled steps
+    again = b.solve(P, axes=axes, islands=islands)
+    size = np.ptp(b.lattice.rest_points, 0).max()
+    assert np.abs(out.verts - ref.verts).max() <= 1e-6 * size
+    assert abs(out.volume / ref.volume - 1) <= 1e-7
+    np.testing.assert_array_equal(out.verts, again.verts)   # deterministic
+
+
+def test_cages_keep_the_numpy_steps(kernels):
+    cage = vp.box_cage((2, 2, 2))
+    v, f = vp.icosphere(2, 0.5)
+    b = vp.bind(cage, v, f)
+    assert type(compiled.default_steps(b)) is NumpySteps
+
+
+def test_without_numba_the_numpy_steps_run_and_say_why():
+    code = ("import sys; sys.modules['numba'] = None\n"       # as in a Blender without the wheels
+            "import vpffd_addon as vp\n"
+            "from vpffd_addon import compiled\n"
+            "print(compiled.load(), compiled.why())\n"
+            "v, f = vp.icosphere(2, 0.5); lat = vp.Lattice((3, 3, 3))\n"
+            "b = vp.bind(lat, v, f)\n"
+            "print(type(compiled.default_steps(b)).__name__, round(b.solve(lat.rest_points * 0.9).volume / b.rest_volume, 9))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                          env=dict(os.environ, PYTHONPATH=ROOT))
+    assert proc.returncode == 0, proc.stderr
+    first, second = proc.stdout.splitlines()
+    assert first.startswith("False numba cannot be imported"), first
+    assert second == "NumpySteps 1.0", second

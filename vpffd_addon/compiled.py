@@ -1,0 +1,141 @@
+"""Compiled per-slot kernels (numba, where it is installed) behind the steps interface of
+`steps.py`, one pass over the faces or blocks each with no temporary arrays (docs/performance.md,
+"Compiled kernels"). So far: the volume gradient along an axis. The NumPy steps stay the
+reference and the fallback.
+
+Nothing compiles on import: `load()` compiles the kernels, or loads them from numba's cache, and
+from then on `default_steps(binding)` hands solves the compiled steps. numba holds the GIL while it
+compiles (seconds), so an interactive host calls `load()` where a pause does not matter.
+
+The kernels are serial and sum in a fixed order, so a result never depends on the number of threads
+or on what ran before (chunked renders stay bit-identical to one render).
+"""
+import numpy as np
+
+from .steps import NumpySteps
+
+#: numba releases the kernels are checked with (first, last), as (major, minor).
+NUMBA_RANGE = ((0, 61), (0, 68))
+
+_state = {"kernels": None, "why": "not loaded (vpffd_addon.compiled.load() compiles the kernels)"}
+
+
+def why():
+    """Why the compiled kernels are not in use, in words; None when they are."""
+    return None if _state["kernels"] is not None else _state["why"]
+
+
+def ready():
+    """Whether `load()` succeeded (solves then use the compiled steps)."""
+    return _state["kernels"] is not None
+
+
+def unload():
+    """Go back to the NumPy steps (the kernels stay compiled for a later `load()`)."""
+    if _state["kernels"] is not None:
+        _state["loaded"] = _state["kernels"]
+    _state["kernels"] = None
+    _state["why"] = "switched off (vpffd_addon.compiled.unload())"
+
+
+def _version(text):
+    parts = []
+    for piece in text.split(".")[:2]:
+        digits = "".join(ch for ch in piece if ch.isdigit())
+        parts.append(int(digits or 0))
+    return tuple(parts)
+
+
+def load(cache=True):
+    """Compile the kernels (or load them from numba's cache when `cache`). Returns True when they
+    are ready; otherwise False, with `why()` saying why (numba missing, a version outside
+    `NUMBA_RANGE`, a compile error). The cache folder is numba's (`NUMBA_CACHE_DIR`, set by the
+    host before the first import of numba)."""
+    if _state["kernels"] is not None:
+        return True
+    if _state.get("loaded") is not None:
+        _state["kernels"], _state["why"] = _state["loaded"], None
+        return True
+    try:
+        import numba
+    except Exception as exc:     # ImportError, or numba refusing this NumPy at import
+        _state["why"] = f"numba cannot be imported ({type(exc).__name__}: {exc})"
+        return False
+    version = _version(numba.__version__)
+    if not NUMBA_RANGE[0] <= version <= NUMBA_RANGE[1]:
+        lo, hi = (".".join(map(str, v)) for v in NUMBA_RANGE)
+        _state["why"] = f"numba {numba.__version__} is outside the checked range {lo} to {hi}"
+        return False
+    try:
+        kernels = _compile(numba, cache)
+        _smoke(kernels)
+    except Exception as exc:
+        _state["why"] = f"the kernels did not compile ({type(exc).__name__}: {exc})"
+        return False
+    _state["kernels"], _state["why"] = kernels, None
+    return True
+
+
+def _compile(numba, cache):
+    njit = numba.njit(cache=cache, nogil=True, fastmath=False, error_model="numpy")
+
+    @njit
+    def gradient(xp, xq, corners, g):
+        # g[corner k of f] += p_m q_n - q_m p_n, (m, n) the face's other corners in cyclic order,
+        # products in the coordinates' precision, sums in float64 (as volume.gradient_component).
+        n_faces = corners.shape[1]
+        for k in range(3):
+            m = (k + 1) % 3
+            n = (k + 2) % 3
+            for f in range(n_faces):
+                cm = corners[m, f]
+                cn = corners[n, f]
+                c = xp[cm] * xq[cn] - xq[cm] * xp[cn]
+                g[corners[k, f]] += c
+        for i in range(g.shape[0]):
+            g[i] *= 1.0 / 6.0
+
+    return {"gradient": gradient}
+
+
+def _smoke(kernels):
+    """Run each kernel once on a tiny problem of each precision (compiles them now, not in a
+    frame) and check it against the sum worked by hand."""
+    for dtype in (np.float32, np.float64):
+        g = np.zeros(4)
+        # One face (0, 1, 2) with p = (1, 0, 0) and q = (0, 2, 0) at its corners: the gradient at
+        # corner 0 is (p1 q2 - q1 p2) / 6 = 0, at corner 1 (p2 q0 - q2 p0) / 6 = 0, and at
+        # corner 2 (p0 q1 - q0 p1) / 6 = 2 / 6.
+        kernels["gradient"](np.array([1, 0, 0, 0], dtype), np.array([0, 2, 0, 0], dtype),
+                            np.array([[0], [1], [2]], np.int64), g)
+        if not np.allclose(g, [0.0, 0.0, 2.0 / 6.0, 0.0]):
+            raise RuntimeError(f"the volume gradient gave {g}")
+
+
+class CompiledSteps(NumpySteps):
+    """The NumPy steps with the axis gradient compiled (one serial pass over the faces: about
+    twice as fast as NumPy's gathers and scatter on two threads); for a lattice `Binding`. The
+    forward and transposed products stay NumPy's blocked small matrix products, which serial
+    compiled loops have not beaten yet (docs/performance.md, "Compiled kernels")."""
+
+    def __init__(self, binding):
+        super().__init__(binding)
+        self.K = _state["kernels"]
+        b = binding
+        corners = getattr(b, "_corners_flat", None)
+        if corners is None:
+            corners = b._corners_flat = np.ascontiguousarray(np.concatenate(b.corner_parts, axis=1))
+        self.corners = corners
+
+    def _gradient(self, a1, a2):
+        g = np.zeros(self.b.x0.shape[1])
+        self.K["gradient"](self.X[a1], self.X[a2], self.corners, g)
+        return g
+
+
+def default_steps(binding):
+    """The steps a solve uses when none are given: compiled ones for a lattice binding once
+    `load()` succeeded, else the NumPy ones."""
+    if _state["kernels"] is not None and hasattr(binding, "wuv"):
+        return CompiledSteps(binding)
+    return NumpySteps(binding)

@@ -29,6 +29,8 @@ if _ROOT not in sys.path:
     sys.path.insert(0, _ROOT)
 
 import vpffd_addon as vp  # noqa: E402
+from vpffd_addon import compiled  # noqa: E402
+from vpffd_addon.steps import NumpySteps  # noqa: E402
 
 LATTICE_SHAPE = (10, 10, 10)
 RADIUS = 0.45
@@ -315,6 +317,7 @@ def extension_frame_set(verts, tris, points, frames=FRAME_SET_FRAMES):
             out["vpffd_core_solve_ms_median"] = statistics.median(core)
             out["handler_overhead_ms_median"] = float(statistics.median(np.subtract(update, core)))
             out["volume_percent_last"] = engine.stats(ob)["volume_percent"]
+            out["kernels"] = engine.stats(ob).get("kernels")
     out["frame_set_ratio"] = out["vpffd_frame_set_ms_median"] / out["plain_frame_set_ms_median"]
     eh.reset_scene()
     return out
@@ -349,8 +352,9 @@ def bench_size(sub, repeat, use_blender):
         bind_ms = (time.perf_counter() - t0) * 1e3
         b.deform(points)                               # warm-up
         d_med, d_min, d_out = timed(lambda: b.deform(points), rep)
-        b.solve(points, axes="XYZ")                    # warm-up
-        s_med, s_min, sol = timed(lambda: b.solve(points, axes="XYZ"), rep)
+        # The NumPy steps, named: once the compiled kernels are loaded they are the default.
+        vp.solve.solve(b, points, axes="XYZ", steps=NumpySteps)                    # warm-up
+        s_med, s_min, sol = timed(lambda: vp.solve.solve(b, points, axes="XYZ", steps=NumpySteps), rep)
         rest = b.rest_volume
         entry = {
             "bind_ms": bind_ms,
@@ -371,6 +375,13 @@ def bench_size(sub, repeat, use_blender):
             },
             "warnings": list(sol.warnings),
         }
+        if compiled.ready():
+            def fast():
+                return vp.solve.solve(b, points, axes="XYZ", steps=compiled.CompiledSteps)
+            fast()
+            c_med, c_min, c_sol = timed(fast, rep)
+            entry["solve_xyz_compiled_ms_median"], entry["solve_xyz_compiled_ms_min"] = c_med, c_min
+            entry["compiled_vs_numpy_max_abs"] = float(np.abs(c_sol.verts - sol.verts).max())
         if name == "float64":
             deformed64 = d_out
         else:
@@ -399,6 +410,9 @@ def bench_size(sub, repeat, use_blender):
         res["ratios_vs_blender"] = {
             name: {"deform": e["deform_ms_median"] / bl, "solve_xyz": e["solve_xyz_ms_median"] / bl}
             for name, e in res["dtypes"].items()}
+        for name, e in res["dtypes"].items():
+            if "solve_xyz_compiled_ms_median" in e:
+                res["ratios_vs_blender"][name]["solve_xyz_compiled"] = e["solve_xyz_compiled_ms_median"] / bl
         log(f"  blender modifier: {bl:7.2f} ms ({bl * 1e6 / V:6.1f} ns/v), depsgraph wall "
             f"{info['depsgraph_update_wall_ms_median']:.1f} ms | max |blender - core f64| "
             f"{info['deform_max_abs_diff_vs_core_float64']:.2e} | solve/blender " + ", ".join(
@@ -490,9 +504,10 @@ def markdown(report):
              f"Measured {env['date'][:10]} on {env['cpu_count']} CPU cores, Python {env['python']}, "
              f"NumPy {env['numpy']}, Blender (bpy) {env['bpy'] or 'not run'}; "
              "10x10x10 B-spline lattice, squash + twist; medians.", "",
-             "| vertices | Blender's Lattice modifier | deform f32 | XYZ solve f32 | solve / Blender (f32) "
-             "| XYZ solve f64 | solve / Blender (f64) | bytes per vertex f32 / f64 | bind f32 |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| vertices | Blender's Lattice modifier | deform f32 | XYZ solve f32, NumPy | solve / Blender "
+             "(f32) | XYZ solve f32, compiled | compiled / Blender | XYZ solve f64 | solve / Blender (f64) "
+             "| bytes per vertex f32 / f64 | bind f32 |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in report["results"]:
         f32, f64 = r["dtypes"]["float32"], r["dtypes"]["float64"]
         bl = r.get("blender")
@@ -500,16 +515,21 @@ def markdown(report):
         blender = f"{bl['execution_time_ms_median']:.1f} ms" if bl else "-"
         r32 = f"{ratio['float32']['solve_xyz']:.2f}x" if ratio else "-"
         r64 = f"{ratio['float64']['solve_xyz']:.2f}x" if ratio else "-"
+        fast = f32.get("solve_xyz_compiled_ms_median")
+        fast_ms = f"{fast:.1f} ms" if fast is not None else "-"
+        rfast = f"{ratio['float32']['solve_xyz_compiled']:.2f}x" if ratio and fast is not None else "-"
         lines.append(
             f"| {r['n_verts']:,} | {blender} | {f32['deform_ms_median']:.1f} ms | "
-            f"{f32['solve_xyz_ms_median']:.1f} ms | {r32} | {f64['solve_xyz_ms_median']:.1f} ms | {r64} | "
+            f"{f32['solve_xyz_ms_median']:.1f} ms | {r32} | {fast_ms} | {rfast} | "
+            f"{f64['solve_xyz_ms_median']:.1f} ms | {r64} | "
             f"{f32['bytes_per_vertex']:.0f} / {f64['bytes_per_vertex']:.0f} | {f32['bind_ms']:.0f} ms |")
     for r in report["results"]:
         fs = r.get("extension_frame_set")
         if fs:
             lines += ["", f"In Blender, {r['n_verts']:,} vertices, {fs['frames']} animated frames after "
                       f"{FRAME_SET_WARMUPS} not timed: "
-                      f"`scene.frame_set()` takes {fs['vpffd_frame_set_ms_median']:.1f} ms with VP-FFD (XYZ) "
+                      f"`scene.frame_set()` takes {fs['vpffd_frame_set_ms_median']:.1f} ms with VP-FFD (XYZ, "
+                      f"{fs.get('kernels') or 'NumPy'} kernels) "
                       f"against {fs['plain_frame_set_ms_median']:.1f} ms with a plain Lattice modifier "
                       f"({fs['frame_set_ratio']:.2f}x, the median of {len(fs.get('frame_set_ratio_runs', [1]))} "
                       "runs: " + ", ".join(f"{x:.2f}x" for x in fs.get("frame_set_ratio_runs", [fs["frame_set_ratio"]]))
@@ -595,6 +615,8 @@ def main(argv=None):
         return stack_main(args)
 
     t0 = time.perf_counter()
+    if not compiled.load():
+        log(f"compiled kernels not measured: {compiled.why()}")
     env = environment(use_blender)
     log(f"VP-FFD benchmark: sizes {sizes}, repeat {args.repeat}, lattice {LATTICE_SHAPE} BSPLINE, "
         f"numpy {env['numpy']}, bpy {env['bpy']}, {env['cpu_count']} CPUs")

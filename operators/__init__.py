@@ -5,7 +5,8 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import bake, cage, demos, fit, gpu_backend, handlers, log, ops, overlay, panel, properties
+from . import (bake, cage, compiled_backend, demos, fit, gpu_backend, handlers, log, ops, overlay,
+               panel, properties)
 
 classes = (properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
            + cage.classes + fit.classes)
@@ -25,6 +26,7 @@ def register():
 
 
 def unregister():
+    compiled_backend.unregister()
     gpu_backend.release()
     overlay.unregister()
     fit.unregister()

@@ -16,7 +16,7 @@ import numpy as np
 
 from .. import vpffd_addon as vp
 from ..vpffd_addon import linalg3
-from . import cage, gpu_backend, meshio, modifier
+from . import cage, compiled_backend, gpu_backend, meshio, modifier
 from .cache_modifier import find_cache, using_cache
 
 log = logging.getLogger(__name__)
@@ -58,6 +58,8 @@ class Status:
     outside: Optional[int] = None          #: points outside the lattice's box or cage's region
     outside_follow: bool = True            #: whether those follow the boundary (else they stay)
     editing: bool = False                  #: solved from the mesh as edited (its Edit Mode)
+    kernels: Optional[str] = None          #: on the CPU: "compiled" or "NumPy"
+    kernels_why: Optional[str] = None      #: why NumPy's kernels ran, in words
 
 
 def status(obj):
@@ -661,7 +663,9 @@ def _unchanged(state, frame):
 
 
 def _evaluate(state, frame):
-    """The core's pipeline on `frame` (its solver picks the CPU or the GPU): a vp.FrameResult."""
+    """The core's pipeline on `frame` (its solver picks the CPU or the GPU; on the CPU, the
+    compiled kernels once they are loaded): a vp.FrameResult."""
+    compiled_backend.start()        # once per session; NumPy solves until the kernels are ready
     state.backend = ("CPU", "")
     return state.pipeline.evaluate(frame.inputs)
 
@@ -693,6 +697,12 @@ def _publish(obj, state, frame, result, t0):
                 input_volume=result.input_volume, rebound=result.rebound, outside=result.outside,
                 outside_follow=s.cage_outside == "FOLLOW" or isinstance(lattice, vp.Lattice),
                 editing=frame.editing)
+    if backend == "CPU":
+        compiled = vp.compiled.ready() and isinstance(lattice, vp.Lattice)
+        info["kernels"] = "compiled" if compiled else "NumPy"
+        if not compiled:
+            info["kernels_why"] = ("cages solve with NumPy" if isinstance(lattice, vp.Cage)
+                                   else compiled_backend.status()[1])
     if result.input_volume:
         # Sizes: a lattice that mirrors space turns the volume's sign with the shape.
         info["volume_percent"] = 100.0 * abs(result.volume / result.input_volume)

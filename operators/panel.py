@@ -215,8 +215,11 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
             message(layout, context, f"volume {info.volume_percent:.4f}% of {what} "
                                      f"(plain lattice: {info.plain_percent:.4f}%)", icon="CHECKMARK")
         if info.seconds is not None:
-            message(layout, context, f"solved in {1e3 * info.seconds:.1f} ms on the {info.backend}, "
-                                     f"{count(info.n_verts)} vertices", icon="TIME")
+            kernels = f" ({info.kernels} kernels)" if info.kernels else ""
+            message(layout, context, f"solved in {1e3 * info.seconds:.1f} ms on the {info.backend}"
+                                     f"{kernels}, {count(info.n_verts)} vertices", icon="TIME")
+        if info.kernels == "NumPy" and info.kernels_why:
+            message(layout, context, info.kernels_why, icon="INFO")
         if info.backend_reason and ob.vpffd.backend != "CPU":
             message(layout, context, info.backend_reason, icon="INFO")
         if info.closed is False:

@@ -491,6 +491,7 @@ def run_in_fresh_process(zip_path, user_resources, script, timeout=600):
     env = dict(os.environ)
     env[ENV] = os.path.abspath(user_resources)
     env.pop("PYTHONPATH", None)
+    env.pop("NUMBA_CACHE_DIR", None)     # set by this process's extension: the new one sets its own
     return subprocess.run(
         [sys.executable, os.path.abspath(__file__), "run", os.path.abspath(zip_path),
          os.path.abspath(script)], capture_output=True, text=True, timeout=timeout, env=env,

@@ -40,6 +40,11 @@ MUTATIONS = {
         '        if event.type == "ESC" and event.value == "PRESS":',
         '        if event.type == "NONE_SUCH" and event.value == "PRESS":',
         ["tests/e2e/test_gui_window.py"], {"VPFFD_NO_E2E": ""}),
+    "compiled-gradient-scale": (
+        "vpffd_addon/compiled.py",
+        "            g[i] *= 1.0 / 6.0",
+        "            g[i] *= 1.0 / 6.00001",
+        ["tests/test_core_compiled.py", "tests/test_compiled_blender.py"], {}),
     "bpy-missing": (
         None, None, None,
         ["tests/test_stack_blender.py"], {"PYTHONPATH": "{stub}"}),

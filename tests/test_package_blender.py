@@ -19,7 +19,12 @@ pytestmark = pytest.mark.blender
 PY = f"{sys.version_info.major}.{sys.version_info.minor}"
 
 SESSION = r'''
-import json, sys, sysconfig
+import json, os, sys
+# Blender put the package's wheels in the extensions' own site folder; this test's interpreter also
+# has numba of its own (the test environment), which a user's Blender has not: look there first.
+user = os.environ["BLENDER_USER_RESOURCES"]
+ours = [p for p in sys.path if os.path.realpath(p).startswith(os.path.realpath(user))]
+sys.path[:0] = ours
 import numba
 from numba import njit
 
@@ -34,7 +39,9 @@ def dot(a, b):
 
 import numpy as np
 x = np.arange(5.0)
+import llvmlite
 print("VPFFD-NUMBA " + json.dumps({"version": numba.__version__, "file": numba.__file__,
+                                   "llvmlite": llvmlite.__file__, "site": ours,
                                    "dot": dot(x, x), "python": sys.version}), flush=True)
 '''
 
@@ -82,5 +89,7 @@ def test_numba_from_the_package_runs_in_blender(linux_package, tmp_path):
     report = json.loads(line[len("VPFFD-NUMBA "):])
     assert report["version"] == "0.68.1"
     assert report["dot"] == 30.0
-    assert os.path.realpath(report["file"]).startswith(os.path.realpath(str(user))), \
-        "numba comes from the wheels Blender installed for the extension"
+    assert report["site"], "Blender added the extensions' site folder to the path"
+    for module in ("file", "llvmlite"):
+        assert os.path.realpath(report[module]).startswith(os.path.realpath(str(user))), \
+            (module, "comes from the wheels Blender installed for the extension", report)

@@ -184,6 +184,9 @@ def session():
     r, _ = ratio(ball)
     info = eng.status(ball)
     check("squash keeps the volume (evaluated mesh)", abs(r - 1) <= VOLUME_TOL, r)
+    check("without numba (Debian's Blender, the universal package) NumPy solves and the panel "
+          "says why", info.kernels == "NumPy" and "numba is not installed" in (info.kernels_why or ""),
+          (info.kernels, info.kernels_why))
     check("panel figure is the measured volume", info.volume_percent is not None
           and abs(info.volume_percent / 100 - abs(r)) <= 1e-6, (info.volume_percent, r))
     yield from screenshot("panel")

@@ -1,0 +1,111 @@
+"""The compiled kernels inside Blender: loaded on the first solve of a session from numba's cache in
+the extension's user folder (compiled there by a separate process when Blender has a window, in the
+process without one), the same shapes as with NumPy's kernels, the panel saying which ran, and a
+second session starting from the cache. The NumPy fallback when numba is missing is checked in
+Debian's Blender, which has none (tests/e2e/gui_session.py)."""
+import os
+import time
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+pytest.importorskip("numba", reason="numba is not installed in this environment")
+
+from . import extension_harness as eh  # noqa: E402
+from .blender_ref import bind as _bind, evaluated_world  # noqa: E402
+from .test_lifecycle_blender import _ball, _lattice  # noqa: E402
+
+pytestmark = pytest.mark.blender
+
+
+def _modules(ext):
+    return ext.module.operators.engine, ext.module.operators.compiled_backend, ext.module.vpffd_addon
+
+
+def test_bound_meshes_solve_with_the_compiled_kernels_as_with_numpys(ext):
+    engine, backend, vp = _modules(ext)
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    info = engine.status(ball)
+    assert backend.status()[0] == "ready" and info.kernels == "compiled", (backend.status(), info)
+    compiled = evaluated_world(ball)[0]
+    vp.compiled.unload()
+    try:
+        engine.update(ball, bpy.context.evaluated_depsgraph_get(), force=True)
+        bpy.context.view_layer.update()
+        info = engine.status(ball)
+        assert info.kernels == "NumPy" and info.kernels_why, info
+        plain = evaluated_world(ball)[0]
+    finally:
+        assert vp.compiled.load()
+    size = np.ptp(plain, 0).max()
+    assert np.abs(compiled - plain).max() <= 1e-6 * size
+
+
+def test_the_cache_lives_in_the_user_folder_and_nothing_is_written_into_the_extension(ext):
+    _, backend, _ = _modules(ext)
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    assert cache and os.path.realpath(cache) == os.path.realpath(backend.cache_dir())
+    assert any(n.endswith(".nbi") for _, _, names in os.walk(cache) for n in names)
+    ext_dir = os.path.dirname(os.path.abspath(ext.module.__file__))
+    written = [n for _, _, names in os.walk(ext_dir) for n in names if n.endswith((".nbi", ".nbc"))]
+    assert not written, written
+
+
+def test_with_a_window_the_kernels_compile_in_another_process(ext):
+    """The path a window takes: a separate process fills the cache while this one goes on; its
+    kernels are then loaded here."""
+    _, backend, vp = _modules(ext)
+    vp.compiled.unload()
+    backend.reset()
+    vp.compiled._state.pop("loaded", None)         # as a new session: nothing compiled here yet
+    try:
+        backend.start(in_process=False)
+        assert backend.status()[0] == "compiling", backend.status()
+        t0 = time.time()
+        while backend._poll() is not None and time.time() - t0 < 300:
+            time.sleep(0.2)
+        assert backend.status() == ("ready", "compiled kernels"), backend.status()
+    finally:
+        if not vp.compiled.ready():
+            assert vp.compiled.load()
+
+
+SECOND_SESSION = r'''
+import bpy, json, os
+import numpy as np
+vp = __import__(module + ".vpffd_addon", fromlist=["compiled"])
+engine = __import__(module + ".operators.engine", fromlist=["engine"])
+bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=3, radius=0.8)
+ob = bpy.context.active_object
+bpy.ops.object.add(type="LATTICE")
+lat = bpy.context.active_object
+lat.scale = (2.0, 2.0, 2.0)
+ob.vpffd.lattice, ob.vpffd.axes = lat, "XYZ"
+with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+    bpy.ops.object.vpffd_bind()
+stats = vp.compiled._state["kernels"]["gradient"].stats
+print("VPFFD-SECOND " + json.dumps({"kernels": engine.status(ob).kernels,
+                                   "hits": sum(stats.cache_hits.values()),
+                                   "misses": sum(stats.cache_misses.values()),
+                                   "cache": os.environ.get("NUMBA_CACHE_DIR")}), flush=True)
+'''
+
+
+def test_a_second_session_loads_the_kernels_from_the_cache(vpffd, tmp_path):
+    import json
+    user = tmp_path / "user"
+    user.mkdir()
+    script = tmp_path / "session.py"
+    script.write_text(SECOND_SESSION)
+    reports = []
+    for _ in range(2):
+        proc = eh.run_in_fresh_process(vpffd.zip_path, str(user), str(script))
+        line = next((l for l in proc.stdout.splitlines() if l.startswith("VPFFD-SECOND ")), None)
+        assert line is not None, (proc.stdout + proc.stderr)[-3000:]
+        reports.append(json.loads(line[len("VPFFD-SECOND "):]))
+    first, second = reports
+    assert first["kernels"] == second["kernels"] == "compiled", reports
+    assert first["misses"] > 0 and second["misses"] == 0 and second["hits"] > 0, reports
+    assert os.path.realpath(second["cache"]).startswith(os.path.realpath(str(user))), reports

@@ -684,9 +684,13 @@ def update_stack_readme(stack, path=os.path.join(_ROOT, "README.md")):
     head, rest = text.split(start, 1)
     _, tail = rest.split(end, 1)
     env = environment(True)
+    import importlib
+    state, why = importlib.import_module(_EXTENSION["module"] + ".operators.compiled_backend").status()
+    kernels = "compiled kernels" if state == "ready" else f"NumPy kernels: {why}"
     body = (f"\n<!-- written by ./dev bench --stack-only --update-readme -->\n\nMeasured by `./dev bench "
             f"--stack-only` on {datetime.date.today().isoformat()} with Blender {env['bpy']} (the `bpy` "
-            f"module), {env['cpu_count']} CPU cores.\n\n" + stack_benchmark.markdown(stack) + "\n")
+            f"module), {env['cpu_count']} CPU cores; VP-FFD on the CPU with {kernels}.\n\n"
+            + stack_benchmark.markdown(stack) + "\n")
     with open(path, "w") as fh:
         fh.write(head + start + body + end + tail)
 

@@ -7,11 +7,13 @@ Nothing compiles on import: `load()` compiles the kernels, or loads them from nu
 from then on `default_steps(binding)` hands solves the compiled steps. numba holds the GIL while it
 compiles (seconds), so an interactive host calls `load()` where a pause does not matter.
 
-The kernels are serial and sum in a fixed order, so a result never depends on the number of threads
-or on what ran before (chunked renders stay bit-identical to one render).
+Each kernel call is serial and sums in a fixed order; calls run on the fixed parts of
+`parallel.py`, as NumPy's kernels do, so a result never depends on what ran before (chunked renders
+stay bit-identical to one render on the same machine).
 """
 import numpy as np
 
+from . import parallel
 from .steps import NumpySteps
 
 #: numba releases the kernels are checked with (first, last), as (major, minor).
@@ -113,24 +115,32 @@ def _smoke(kernels):
 
 
 class CompiledSteps(NumpySteps):
-    """The NumPy steps with the axis gradient compiled (one serial pass over the faces: about
-    twice as fast as NumPy's gathers and scatter on two threads); for a lattice `Binding`. The
-    forward and transposed products stay NumPy's blocked small matrix products, which serial
-    compiled loops have not beaten yet (docs/performance.md, "Compiled kernels")."""
+    """The NumPy steps with the axis gradient compiled, for a lattice `Binding`: the kernel
+    releases the GIL and runs on the worker threads of `parallel.py`, each part of the faces on the
+    thread NumPy's kernel gives it (the parts summed in part order, as NumPy's). The forward and
+    transposed products stay NumPy's batched small matrix products, which compiled loops have not
+    beaten (docs/performance.md, "Compiled kernels")."""
 
     def __init__(self, binding):
         super().__init__(binding)
         self.K = _state["kernels"]
         b = binding
-        corners = getattr(b, "_corners_flat", None)
-        if corners is None:
-            corners = b._corners_flat = np.ascontiguousarray(np.concatenate(b.corner_parts, axis=1))
-        self.corners = corners
+        parts = getattr(b, "_corner_parts_c", None)
+        if parts is None:
+            parts = b._corner_parts_c = [np.ascontiguousarray(c) for c in b.corner_parts]
+        self.corner_parts = parts
 
     def _gradient(self, a1, a2):
-        g = np.zeros(self.b.x0.shape[1])
-        self.K["gradient"](self.X[a1], self.X[a2], self.corners, g)
-        return g
+        n = self.b.x0.shape[1]
+        xp, xq = self.X[a1], self.X[a2]
+        kernel = self.K["gradient"]
+
+        def part(corners):
+            g = np.zeros(n)
+            kernel(xp, xq, corners, g)
+            return g
+        parts = parallel.run(part, self.corner_parts)
+        return parts[0] if len(parts) == 1 else np.sum(parts, 0)
 
 
 def default_steps(binding):

@@ -444,7 +444,6 @@ def _evaluated_here(obj, depsgraph):
 @dataclasses.dataclass
 class _Frame:
     """What Blender hands over for one update of a bound object, ready for the core."""
-    mod: object                 #: the VP-FFD modifier
     helper: object              #: its solver helper, where the offsets go
     inputs: "vp.FrameInputs"
     signature: tuple            #: (settings, arrays): equal signatures give equal results
@@ -588,9 +587,8 @@ def _read(obj, state, mod, depsgraph, helpers_taken):
     # Animated settings (volume scale, strength, ...) have this evaluation's values on the
     # evaluated object only: a render's depsgraph does not write them back to the original.
     s = state.settings = ob_eval.vpffd
-    frame = _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, not rendering)
-    frame.stale_weights = stale_weights
-    return frame
+    return _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_weights,
+                  may_write=not rendering)
 
 
 def _control_inputs(obj, state, s, lat_ob, depsgraph, helper):
@@ -610,8 +608,8 @@ def _control_inputs(obj, state, s, lat_ob, depsgraph, helper):
     return lattice, grid, points, weights, cage_options, meshio.matrix(lat_eval.matrix_world)
 
 
-def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, may_write):
-    """The `_Frame` of the tap `tap` (stale weights left for the caller)."""
+def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_weights, may_write):
+    """The `_Frame` of the tap `tap`."""
     X, weights, tapped_tris = tap
     lattice, grid, points, lattice_weights, cage_options, M_lat = _control_inputs(
         obj, state, s, lat_ob, depsgraph, helper)
@@ -649,9 +647,9 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, may_writ
         directions=directions, volume_scale=s.volume_scale, mobility=mobility, pins=pin_targets,
         islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
         dtype=np.float32)
-    return _Frame(mod=mod, helper=helper, inputs=inputs, signature=(settings, arrays),
+    return _Frame(helper=helper, inputs=inputs, signature=(settings, arrays),
                   faces_from=faces_from, lattice_matrix=M_lat, warnings=warnings,
-                  stale_weights=False, editing=editing)
+                  stale_weights=stale_weights, editing=editing)
 
 
 def _unchanged(state, frame):

@@ -124,11 +124,6 @@ class CompiledSteps(NumpySteps):
     def __init__(self, binding):
         super().__init__(binding)
         self.K = _state["kernels"]
-        b = binding
-        parts = getattr(b, "_corner_parts_c", None)
-        if parts is None:
-            parts = b._corner_parts_c = [np.ascontiguousarray(c) for c in b.corner_parts]
-        self.corner_parts = parts
 
     def _gradient(self, a1, a2):
         n = self.b.x0.shape[1]
@@ -139,7 +134,7 @@ class CompiledSteps(NumpySteps):
             g = np.zeros(n)
             kernel(xp, xq, corners, g)
             return g
-        parts = parallel.run(part, self.corner_parts)
+        parts = parallel.run(part, self.b.corner_parts)
         return parts[0] if len(parts) == 1 else np.sum(parts, 0)
 
 

@@ -46,11 +46,42 @@ def _ensure_tools():
             raise RuntimeError(f"apt-get install {' '.join(missing)} failed:\n{proc.stderr[-2000:]}")
 
 
+def _display_taken(n):
+    """Whether X display :n is in use: its lock names a running process, or its socket exists
+    with no lock to say whose. A lock left by a server that is gone (killed before it could
+    clean up) does not count: Xvfb replaces a stale lock itself."""
+    lock = f"/tmp/.X{n}-lock"
+    try:
+        with open(lock) as fh:
+            pid = int(fh.read().strip() or 0)
+    except FileNotFoundError:
+        return os.path.exists(f"/tmp/.X11-unix/X{n}")
+    except (OSError, ValueError):
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def stop_display(proc):
+    """End Xvfb so that it removes its lock and socket (a killed one leaves them behind)."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def start_display():
     """(Popen of Xvfb, display string) on the first free display number from 90."""
     _ensure_tools()
     for n in range(90, 120):
-        if os.path.exists(f"/tmp/.X11-unix/X{n}") or os.path.exists(f"/tmp/.X{n}-lock"):
+        if _display_taken(n):
             continue
         proc = subprocess.Popen(["Xvfb", f":{n}", "-screen", "0", f"{SCREEN[0]}x{SCREEN[1]}x24",
                                  "-nolisten", "tcp"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -60,7 +91,7 @@ def start_display():
             if proc.poll() is not None:
                 break
             time.sleep(0.05)
-        proc.kill()
+        stop_display(proc)
     raise RuntimeError("could not start Xvfb on displays :90 to :119")
 
 
@@ -142,8 +173,7 @@ def run_session(timeout=600, keep=False):
                 proc.kill()
                 proc.wait()
     finally:
-        xvfb.kill()
-        xvfb.wait()
+        stop_display(xvfb)
     results_path = os.path.join(out, "results.json")
     if not os.path.exists(results_path):
         with open(log_path) as fh:

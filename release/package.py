@@ -79,8 +79,8 @@ def download(platform, python, dest=CACHE):
     if proc.returncode != 0:
         raise PackageError(f"pip could not download {' '.join(PINS)} for {platform}, Python "
                            f"{python}:\n{proc.stderr[-2000:]}")
-    names = sorted(n for n in os.listdir(target) if n.endswith(".whl")
-                   and any(n.startswith(p.split("==")[0] + "-" + p.split("==")[1] + "-") for p in PINS))
+    prefixes = tuple(pin.replace("==", "-") + "-" for pin in PINS)     # numba-0.68.1-...whl
+    names = sorted(n for n in os.listdir(target) if n.endswith(".whl") and n.startswith(prefixes))
     return [os.path.join(target, n) for n in names]
 
 

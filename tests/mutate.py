@@ -45,6 +45,11 @@ MUTATIONS = {
         "            g[i] *= 1.0 / 6.0",
         "            g[i] *= 1.0 / 6.00001",
         ["tests/test_core_compiled.py", "tests/test_compiled_blender.py"], {}),
+    "compiled-bind-influence": (
+        "vpffd_addon/layout_kernels.py",
+        "wws[blk, k, pos] = ww[v, k] * s[v]",
+        "wws[blk, k, pos] = ww[v, k]",
+        ["tests/test_core_compiled.py"], {}),
     "bpy-missing": (
         None, None, None,
         ["tests/test_stack_blender.py"], {"PYTHONPATH": "{stub}"}),

@@ -86,3 +86,57 @@ def test_without_numba_the_numpy_steps_run_and_say_why():
     first, second = proc.stdout.splitlines()
     assert first.startswith("False numba cannot be imported"), first
     assert second == "NumpySteps 1.0", second
+
+
+def _arrays(b):
+    """Every array a binding holds (its face parts too), and its rest volume."""
+    out = {k: v for k, v in vars(b).items() if isinstance(v, np.ndarray)}
+    out.update({f"corner_parts[{k}]": c for k, c in enumerate(b.corner_parts)})
+    out["rest_volume"] = np.array(b.rest_volume)
+    return out
+
+
+def _bind_both(lattice, verts, tris, **kw):
+    """A bind with NumPy's layout and one with the compiled layout kernels, in that order."""
+    compiled.unload()
+    ref = vp.bind(lattice, verts, tris, **kw)
+    assert compiled.load(), compiled.why()
+    assert compiled.bind_kernels(lattice) is not None
+    return ref, vp.bind(lattice, verts, tris, **kw)
+
+
+@pytest.mark.parametrize("shape", [(2, 2, 2), (3, 4, 5), (6, 6, 6), (9, 2, 4)])
+@pytest.mark.parametrize("kind", ["LINEAR", "CARDINAL", "CATMULL_ROM", "BSPLINE"])
+def test_the_compiled_bind_layout_is_numpys_bit_for_bit(kernels, shape, kind):
+    # A mesh partly outside the lattice (clamped taps), a weight per vertex, both precisions.
+    rng = np.random.default_rng(sum(shape))
+    v, f = vp.icosphere(3, 0.7)
+    v = v * [1.3, 0.8, 1.1] + rng.normal(0, 0.01, v.shape)
+    lat = vp.Lattice(shape, (kind, "BSPLINE", kind), bounds=((-0.6, -0.4, -0.45), (0.5, 0.4, 0.7)))
+    for dtype in (np.float32, np.float64):
+        ref, out = _bind_both(lat, v, f, dtype=dtype, influence=rng.uniform(0, 1, len(v)))
+        ref_arrays, arrays = _arrays(ref), _arrays(out)
+        assert ref.n_outside > 0
+        assert ref_arrays.keys() == arrays.keys()
+        for name, a in ref_arrays.items():
+            assert a.dtype == arrays[name].dtype and a.shape == arrays[name].shape, name
+            np.testing.assert_array_equal(arrays[name], a, err_msg=name)
+
+
+def test_the_compiled_bind_layout_keeps_islands_and_big_meshes_bit_for_bit(kernels):
+    # Several islands (sorted by island, then cell), and a mesh big enough for the worker threads.
+    v, f = vp.icosphere(7, 0.5)
+    v2, f2 = vp.icosphere(3, 0.15)
+    verts = np.vstack([v, v2 + 0.3, v2 - 0.3])
+    tris = np.vstack([f, f2 + len(v), f2 + len(v) + len(v2)])
+    lat = vp.Lattice((5, 6, 4), ("CATMULL_ROM", "LINEAR", "BSPLINE"))
+    ref, out = _bind_both(lat, verts, tris, dtype=np.float32)
+    assert ref.n_islands == 3 and len(ref.corner_parts) > 1
+    for name, a in _arrays(ref).items():
+        np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
+
+
+def test_bezier_and_one_point_axes_bind_with_numpy(kernels):
+    assert compiled.bind_kernels(vp.Lattice((4, 4, 4), "BEZIER")) is None
+    assert compiled.bind_kernels(vp.Lattice((4, 1, 4))) is None
+    assert compiled.bind_kernels(vp.Lattice((4, 2, 4))) is not None

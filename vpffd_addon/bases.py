@@ -11,7 +11,7 @@ import numpy as np
 INTERPOLATIONS = ("LINEAR", "CARDINAL", "CATMULL_ROM", "BSPLINE", "BEZIER")
 
 # Tension of Blender's cardinal splines (key_curve_position_weights).
-_CARDINAL_FC = {"CARDINAL": 0.71, "CATMULL_ROM": 0.5}
+CARDINAL_FC = {"CARDINAL": 0.71, "CATMULL_ROM": 0.5}
 
 
 def _local_weights(t, kind, derivative=True):
@@ -43,7 +43,7 @@ def _local_weights(t, kind, derivative=True):
             dw[:, 3] = 3 * t2
             dw *= 1.0 / 6.0
         return w, dw
-    fc = _CARDINAL_FC[kind]
+    fc = CARDINAL_FC[kind]
     w[:, 0] = -fc * t3 + 2 * fc * t2 - fc * t
     w[:, 1] = (2 - fc) * t3 + (fc - 3) * t2 + 1
     w[:, 2] = (fc - 2) * t3 + (3 - 2 * fc) * t2 + fc * t

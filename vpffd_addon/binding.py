@@ -8,9 +8,10 @@ vertex, to hold memory near 100 bytes per vertex in float32.
 """
 import numpy as np
 
-from . import parallel
-from .bases import axis_taps
+from . import compiled, parallel
+from .bases import CARDINAL_FC, axis_taps
 from .jacobian import lattice_jacobian_det
+from .layout_kernels import KIND_CODES
 from .lattice import Lattice
 from .mesh import Topology, check_verts
 from .solve import solve
@@ -213,12 +214,8 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b = Binding()
     verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype, topology)
     V = b.n_verts
-    cols = np.ascontiguousarray(verts.T)
-
-    def taps_of(a):
-        return axis_taps(cols[a], lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a])
-    # The three axes are independent and NumPy releases the GIL: big meshes use the worker threads.
-    taps = parallel.run(taps_of, [0, 1, 2]) if V >= parallel.MIN_VERTS_PER_PART else [taps_of(a) for a in range(3)]
+    kernels = compiled.bind_kernels(lattice)
+    taps = _lattice_taps(lattice, verts, kernels)
 
     # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded).
     cells = [first + 1 for first, _ in taps]          # first >= -1
@@ -235,33 +232,18 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
         if blocks_per_run.sum() * bs <= _MAX_PADDING * V:
             break
     n_blocks = int(blocks_per_run.sum())
-    run_of = np.repeat(np.arange(len(run_len)), run_len)               # run of each sorted vertex
     first_block = np.cumsum(blocks_per_run) - blocks_per_run
-    local = np.arange(V) - run_start[run_of]
-    slot = np.empty(V, np.int64)
-    slot[order] = (first_block[run_of] + local // bs) * bs + local % bs
-    b.slot = slot
     n_slots = n_blocks * bs
-
-    Ku, Kv, Kw = (w.shape[1] for _, w in taps)
-    # Stored per block as (K, block) so that products run along contiguous vertex rows. Built by
-    # gathering each slot's vertex (padding slots read a zero row), straight into that layout.
-    source = np.full(n_slots, V, np.int64)
-    source[slot] = np.arange(V)
-    source = source.reshape(n_blocks, bs)
-
-    def per_block(w):
-        padded = np.zeros((V + 1, w.shape[1]), b.dtype)
-        padded[:V] = w
-        return np.ascontiguousarray(padded[source].transpose(0, 2, 1))     # (n_blocks, K, bs)
-    Wu, Wv = per_block(taps[0][1]), per_block(taps[1][1])
     b.block_size = bs
-    b.wuv = (Wv[:, :, None, :] * Wu[:, None, :, :]).reshape(n_blocks, Kv * Ku, bs)
-    b.ww = per_block(taps[2][1] * s[:, None])
-    b.slot_influence = np.zeros(n_slots, b.dtype)
-    b.slot_influence[slot] = s
+    runs = (order, run_start, run_len, first_block)
+    if kernels:
+        faces = _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels)
+    else:
+        _numpy_blocks(b, taps, s, runs, n_blocks)
+        faces = None
 
     # Control points of each run (blocks of a run share them), from the run's first vertex.
+    Ku, Kv, Kw = (w.shape[1] for _, w in taps)
     run_vertex = order[run_start]
     grid = [np.clip(taps[a][0][run_vertex, None] + np.arange(K), 0, lattice.shape[a] - 1)
             for a, K in enumerate((Ku, Kv, Kw))]
@@ -273,11 +255,78 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.run_island = labels[run_vertex]
     b.block_island = b.run_island[b.block_run]
 
-    finish(b, rel, tris, labels, n_slots)
+    finish(b, rel, tris, labels, n_slots, faces)
     b.block_parts = parallel.split(n_blocks, V)
     b.n_outside = lattice.outside_count(verts)
     return b
 
+
+def _lattice_taps(lattice, verts, kernels):
+    """[(first (V,), w (V, K))] of the three axes (`bases.axis_taps`), by the compiled kernel when
+    `kernels` are given (every axis then has four taps)."""
+    cols = np.ascontiguousarray(verts.T)
+    V = len(verts)
+
+    def taps_of(a):
+        n, lo, hi, kind = lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a]
+        if not kernels:
+            return axis_taps(cols[a], n, lo, hi, kind)
+        first, w = np.empty(V, np.int64), np.empty((V, 4))
+        kernels["axis_taps"](cols[a], n, float(lo), float(hi), KIND_CODES[kind], CARDINAL_FC.get(kind, 0.0),
+                             first, w)
+        return first, w
+    # The three axes are independent and NumPy and the kernels release the GIL: big meshes use
+    # the worker threads.
+    return parallel.run(taps_of, [0, 1, 2]) if V >= parallel.MIN_VERTS_PER_PART else [taps_of(a) for a in range(3)]
+
+
+def _numpy_blocks(b, taps, s, runs, n_blocks):
+    """Fill b.slot, b.wuv, b.ww and b.slot_influence from the per-vertex taps (NumPy). `runs`:
+    (order (V,), run_start, run_len, first_block), the vertices sorted by (island, cell) and the
+    runs of equal keys with their first blocks."""
+    order, run_start, run_len, first_block = runs
+    V, bs = b.n_verts, b.block_size
+    run_of = np.repeat(np.arange(len(run_len)), run_len)               # run of each sorted vertex
+    local = np.arange(V) - run_start[run_of]
+    slot = np.empty(V, np.int64)
+    slot[order] = (first_block[run_of] + local // bs) * bs + local % bs
+    b.slot = slot
+    n_slots = n_blocks * bs
+    Ku, Kv = taps[0][1].shape[1], taps[1][1].shape[1]
+    # Stored per block as (K, block) so that products run along contiguous vertex rows. Built by
+    # gathering each slot's vertex (padding slots read a zero row), straight into that layout.
+    source = np.full(n_slots, V, np.int64)
+    source[slot] = np.arange(V)
+    source = source.reshape(n_blocks, bs)
+
+    def per_block(w):
+        padded = np.zeros((V + 1, w.shape[1]), b.dtype)
+        padded[:V] = w
+        return np.ascontiguousarray(padded[source].transpose(0, 2, 1))     # (n_blocks, K, bs)
+    Wu, Wv = per_block(taps[0][1]), per_block(taps[1][1])
+    b.wuv = (Wv[:, :, None, :] * Wu[:, None, :, :]).reshape(n_blocks, Kv * Ku, bs)
+    b.ww = per_block(taps[2][1] * s[:, None])
+    b.slot_influence = np.zeros(n_slots, b.dtype)
+    b.slot_influence[slot] = s
+
+
+def _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels):
+    """`_numpy_blocks` and `slot_faces` by the compiled kernels: the slots first, then the block
+    weights beside the faces (two worker threads for a big mesh; the kernels release the GIL).
+    Returns `slot_faces`'s result."""
+    bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
+    b.slot = np.empty(b.n_verts, np.int64)
+    kernels["slots"](*runs, bs, b.slot)
+    b.wuv, b.ww = np.zeros((n_blocks, 16, bs), dt), np.zeros((n_blocks, 4, bs), dt)
+    b.slot_influence = np.zeros(n_slots, dt)
+
+    def weights():
+        kernels["block_weights"](*runs, bs, taps[0][1], taps[1][1], taps[2][1], s,
+                                 b.wuv, b.ww, b.slot_influence, np.empty(8, dt))
+    jobs = [lambda: slot_faces(b, rel, n_slots, kernels), weights]
+    if b.n_verts >= parallel.MIN_VERTS_PER_PART:
+        return parallel.run(lambda job: job(), jobs)[0]
+    return [job() for job in jobs][0]
 
 def stable_order(keys):
     """np.argsort(keys, kind="stable") for non-negative integer keys below 2**32, as two passes of
@@ -332,42 +381,63 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
     return verts, tris, s, labels, rel
 
 
-def finish(b, rel, tris, labels, n_slots):
-    """Store rest coordinates, faces and volumes once `b.slot` (V,) is known."""
+def slot_faces(b, rel, n_slots, kernels=None):
+    """The rest coordinates in slot order and the faces, once `b.slot` (V,) is known: sets b.x0
+    and b.corner_parts, and returns (face_vol (F,), sums (2, n_islands)): the faces' float64 volume
+    terms in their stored order, and per island their sum and the sum of their absolute values. By the compiled layout kernels when `kernels` are given."""
     slot, V = b.slot, b.n_verts
     # Rest coordinates in slot order: float64 for the faces' volume terms below, and in the
     # binding's precision as x0 (the same rounding as storing them straight into it).
-    coords = np.zeros((3, n_slots))
-    coords[:, slot] = rel.T
-    x0 = b.x0 = coords.astype(b.dtype)
     # Faces as (3, F) slots, ordered by the block of their lowest slot so that gathers walk
     # memory forwards (a stable sort: ties keep the faces' own order, whatever NumPy's algorithm).
     # Everything face-wise is kept as (3, F) rows: gathers of whole rows are several times faster
     # than gathers of (F, 3) rows.
     tris_t = b.topology.tris_t
+    F = tris_t.shape[1]
+    face_parts = parallel.split(F, V)
+    coords = np.zeros((3, n_slots))
+    if kernels:
+        b.x0 = np.zeros((3, n_slots), b.dtype)
+        kernels["slot_coords"](slot, rel, coords, b.x0)
+        edges = np.array([fs.start for fs in face_parts] + [F], np.int64)
+        corners, face_order, face_vol = np.empty(3 * F, np.int64), np.empty(F, np.int64), np.empty(F)
+        shift = b.block_size.bit_length() - 1                      # block sizes are powers of two
+        sums = np.zeros((2, b.n_islands))
+        kernels["face_layout"](slot, tris_t, shift, n_slots >> shift, coords, edges, corners, face_order,
+                               face_vol, b.topology.face_island, sums[0], sums[1])
+        b.corner_parts = [corners[3 * fs.start:3 * fs.stop].reshape(3, -1) for fs in face_parts]
+        return face_vol, sums
+    coords[:, slot] = rel.T
+    b.x0 = coords.astype(b.dtype)
     corners = np.take(slot, tris_t)
     lowest = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
     face_order = stable_order(lowest // getattr(b, "block_size", 1))
     corners = np.take(corners, face_order, axis=1)
-    face_parts = parallel.split(corners.shape[1], V)
     b.corner_parts = [np.ascontiguousarray(corners[:, fs]) for fs in face_parts]
-    b.vertex_parts = parallel.split(V, V)
-
     # The faces' volume terms, in float64 from the coordinates in slot order: the sorted faces'
     # corners lie close together there, so the gathers stay in cache (about three times faster
     # than gathering in the mesh's own vertex order).
-    face_island = b.topology.face_island[face_order]
-    face_vol = np.empty(corners.shape[1])
+    face_vol = np.empty(F)
 
     def volumes(k):
         face_vol[face_parts[k]] = face_volumes(coords, b.corner_parts[k])
     parallel.run(volumes, list(range(len(face_parts))))
-    b.rest_island_volumes = np.bincount(face_island, face_vol, b.n_islands)
+    face_island = b.topology.face_island[face_order]
+    return face_vol, np.stack([np.bincount(face_island, face_vol, b.n_islands),
+                               np.bincount(face_island, np.abs(face_vol), b.n_islands)])
+
+
+def finish(b, rel, tris, labels, n_slots, faces=None):
+    """Store rest coordinates, faces and volumes once `b.slot` (V,) is known; `faces`: what
+    `slot_faces` returned when it already ran."""
+    face_vol, sums = faces if faces is not None else slot_faces(b, rel, n_slots)
+    b.vertex_parts = parallel.split(b.n_verts, b.n_verts)
+    b.rest_island_volumes = sums[0]
     b.rest_volume = float(face_vol.sum())
     # The volume's rounding in the binding's precision: a few ulps of every face's term. An open
     # mesh far from the lattice centre, or a very small one, can enclose less than that.
-    b.rest_volume_noise = 4 * float(np.finfo(b.dtype).eps) * np.bincount(face_island, np.abs(face_vol), b.n_islands)
+    b.rest_volume_noise = 4 * float(np.finfo(b.dtype).eps) * sums[1]
     if not (np.isfinite(b.rest_island_volumes).all() and np.isfinite(b.rest_volume)):
         raise ValueError("rest_verts are too large: their volume overflows floating point")
-    if not np.isfinite(x0).all():
+    if not np.isfinite(b.x0).all():
         raise ValueError(f"rest_verts do not fit in {b.dtype.name}")

@@ -1,10 +1,12 @@
-"""Compiled per-slot kernels (numba, where it is installed) behind the steps interface of
-`steps.py`, one pass over the faces or blocks each with no temporary arrays (docs/performance.md,
-"Compiled kernels"). So far: the volume gradient along an axis. The NumPy steps stay the
-reference and the fallback.
+"""Compiled per-frame kernels (numba, where it is installed), one pass over the faces or blocks
+each with no temporary arrays (docs/performance.md, "Compiled kernels"): the volume gradient
+along an axis, behind the steps interface of `steps.py`, and the layout of a lattice bind
+(`layout_kernels.py`), which a mesh moving through the lattice pays on every frame. The NumPy code
+stays the reference and the fallback.
 
 Nothing compiles on import: `load()` compiles the kernels, or loads them from numba's cache, and
-from then on `default_steps(binding)` hands solves the compiled steps. numba holds the GIL while it
+from then on `default_steps(binding)` hands solves the compiled steps and `bind_kernels` hands
+binds the layout kernels. numba holds the GIL while it
 compiles (seconds), so an interactive host calls `load()` where a pause does not matter.
 
 Each kernel call is serial and sums in a fixed order; calls run on the fixed parts of
@@ -13,8 +15,10 @@ stay bit-identical to one render on the same machine).
 """
 import numpy as np
 
-from . import parallel
+from . import layout_kernels, parallel
+from .bases import CARDINAL_FC, axis_taps
 from .steps import NumpySteps
+from .volume import face_volumes
 
 #: numba releases the kernels are checked with (first, last), as (major, minor).
 NUMBA_RANGE = ((0, 61), (0, 68))
@@ -97,7 +101,7 @@ def _compile(numba, cache):
         for i in range(g.shape[0]):
             g[i] *= 1.0 / 6.0
 
-    return {"gradient": gradient}
+    return {"gradient": gradient, **layout_kernels.define(njit)}
 
 
 def _smoke(kernels):
@@ -112,6 +116,23 @@ def _smoke(kernels):
                             np.array([[0], [1], [2]], np.int64), g)
         if not np.allclose(g, [0.0, 0.0, 2.0 / 6.0, 0.0]):
             raise RuntimeError(f"the volume gradient gave {g}")
+    # The layout kernels must give NumPy's values bit for bit (binds are compared array by array
+    # in the tests); here a few coordinates in, at the edges of and outside a small axis.
+    x = np.array([-0.9, -0.5, -0.31, 0.0, 0.2, 0.5, 0.77, 1.6])
+    for kind, code in layout_kernels.KIND_CODES.items():
+        for n in (2, 3, 5):
+            first, w = np.empty(len(x), np.int64), np.empty((len(x), 4))
+            kernels["axis_taps"](x, n, -0.5, 0.5, code, CARDINAL_FC.get(kind, 0.0), first, w)
+            ref_first, ref_w = axis_taps(x, n, -0.5, 0.5, kind)
+            if not (np.array_equal(first, ref_first) and np.array_equal(w, ref_w)):
+                raise RuntimeError(f"the {kind} taps of a {n}-point axis differ from NumPy's")
+    coords = np.array([[0.0, 1.0, 0.0, 0.3], [0.0, 0.0, 1.0, 0.2], [0.0, 0.0, 0.0, 1.1]])
+    tris_t = np.array([[0, 1, 3], [1, 2, 2], [2, 3, 0]], np.int64)
+    corners, order, vol = np.empty(9, np.int64), np.empty(3, np.int64), np.empty(3)
+    kernels["face_layout"](np.arange(4), tris_t, 2, 1, coords, np.array([0, 3]), corners, order, vol,
+                           np.zeros(3, np.int64), np.zeros(1), np.zeros(1))
+    if not (np.array_equal(corners.reshape(3, 3), tris_t) and np.array_equal(vol, face_volumes(coords, tris_t))):
+        raise RuntimeError("the faces' volume terms differ from NumPy's")
 
 
 class CompiledSteps(NumpySteps):
@@ -136,6 +157,17 @@ class CompiledSteps(NumpySteps):
             return g
         parts = parallel.run(part, self.b.corner_parts)
         return parts[0] if len(parts) == 1 else np.sum(parts, 0)
+
+
+def bind_kernels(lattice):
+    """The compiled kernels for binding a mesh to `lattice` once `load()` succeeded, or None (then
+    NumPy binds). They cover Blender's four-tap interpolations; an axis with one point or a
+    Bernstein (BEZIER) axis binds with NumPy."""
+    kernels = _state["kernels"]
+    if kernels is None or not all(n > 1 and kind in layout_kernels.KIND_CODES
+                                  for n, kind in zip(lattice.shape, lattice.interpolation)):
+        return None
+    return kernels
 
 
 def default_steps(binding):

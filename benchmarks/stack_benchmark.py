@@ -222,6 +222,18 @@ def frame_set_figures(bpy, eh, engine, verts, tris):
     return rows
 
 
+def lattice_modifier_alone(bpy, eh, verts, tris):
+    """Blender's Lattice modifier in the *lattice points* scene, three runs of frames: measured
+    before VP-FFD has run in this process and again after it (its kernels loaded, its worker
+    threads idle), to show that VP-FFD does not slow Blender's own modifiers."""
+    _scene(bpy, eh, "lattice points", "lattice", verts, tris)
+    wall = []
+    for _ in range(3):
+        wall += _frames(bpy)[0]
+    eh.reset_scene()
+    return _spread(wall)
+
+
 def median_rounds(rounds):
     """Per scenario, the row of the round whose ratio is the median, with every round's ratio."""
     rows = []
@@ -236,15 +248,22 @@ def median_rounds(rounds):
 def bind_figures(bpy, eh, engine, handlers):
     out = {}
     lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    compiled = vp.compiled.load()
     for sub in (7, 8):
         v, f = vp.icosphere(sub, 0.45)
-        times = []
-        for _ in range(3):
-            t0 = time.perf_counter()
-            vp.bind(lat, v, f, dtype=np.float32)
-            times.append((time.perf_counter() - t0) * 1e3)
-        out[f"vp_bind_ms_{len(v)}"] = min(times)
-        log(f"  vp.bind {len(v):,} vertices: {min(times):.0f} ms (best of 3)")
+        moved = v * 1.02 + 0.01          # the same mesh elsewhere in the lattice: a re-embedding
+        topology = vp.Topology(f, len(v))
+        for kind, use in (("numpy", False), ("compiled", True)):
+            if use and not compiled:
+                continue
+            for what, pos, topo in (("first", v, None), ("reembed", moved, topology)):
+                times = []
+                for _ in range(3):
+                    t0 = time.perf_counter()
+                    vp.bind(lat, pos, f, dtype=np.float32, topology=topo, use_compiled=use)
+                    times.append((time.perf_counter() - t0) * 1e3)
+                out[f"vp_bind_ms_{what}_{kind}_{len(v)}"] = min(times)
+                log(f"  vp.bind {what} {kind} {len(v):,} vertices: {min(times):.0f} ms (best of 3)")
     v, f = vp.icosphere(SUBDIVISIONS, 0.45)
     ob = _scene(bpy, eh, "lattice points", "none", v, f)
     ob.vpffd.lattice = bpy.data.objects["Lattice"]
@@ -330,6 +349,7 @@ def run(engine_module_loader):
     verts, tris = vp.icosphere(SUBDIVISIONS, 0.45)
     log(f"stack benchmark: {len(verts):,} vertices, {LATTICE} B-spline lattice, XYZ, "
         f"{FRAMES} frames after {FRAME_WARMUPS} warm-up frames")
+    alone_before = lattice_modifier_alone(bpy, eh, verts, tris)
     report = {"vertices": len(verts), "lattice": list(LATTICE), "frames": FRAMES,
               "warmups": FRAME_WARMUPS, "rounds": ROUNDS,
               "frame_set": median_rounds([frame_set_figures(bpy, eh, engine, verts, tris)
@@ -337,6 +357,9 @@ def run(engine_module_loader):
               "cage": cage_figures(bpy, eh, engine, cage_module, verts, tris),
               "bind": bind_figures(bpy, eh, engine, handlers),
               "islands": island_figures()}
+    report["lattice_modifier_alone"] = {"before": alone_before,
+                                        "after": lattice_modifier_alone(bpy, eh, verts, tris),
+                                        "kernels": engine.compiled_backend.status()[0]}
     eh.reset_scene()
     return report
 
@@ -373,16 +396,30 @@ def markdown(report):
                     f"({c['vpffd_ms']['min']:.0f}-{c['vpffd_ms']['max']:.0f}) | | "
                     f"{c['vpffd_update_ms']['median']:.0f} | |")
     b = report["bind"]
-    binds = ", ".join(f"{int(k.rsplit('_', 1)[1]):,} vertices {v:.0f} ms" for k, v in b.items()
-                      if k.startswith("vp_bind_ms_"))
+    binds = []
+    for n in sorted({int(k.rsplit("_", 1)[1]) for k in b if k.startswith("vp_bind_ms_")}):
+        cells = []
+        for what, words in (("first", "a first bind"), ("reembed", "a re-embedding (faces' topology reused)")):
+            ms = [b.get(f"vp_bind_ms_{what}_{kind}_{n}") for kind in ("numpy", "compiled")]
+            cells.append(f"{words} {' / '.join('-' if m is None else f'{m:.0f}' for m in ms)} ms")
+        binds.append(f"{n:,} vertices: {', '.join(cells)}")
     rows.append("")
-    rows.append(f"`vp.bind`: {binds}; the Bind operator at {report['vertices']:,} vertices: "
+    rows.append(f"`vp.bind` (NumPy / compiled kernels, best of 3): {'; '.join(binds)}. "
+                f"The Bind operator at {report['vertices']:,} vertices: "
                 f"{b['bind_operator_ms']:.0f} ms. Undo: the undo step solves the restored frame again "
                 f"({b['undo_handler_ms']:.0f} ms, so that the panel describes it), "
                 f"{'re-embedding it' if b.get('rebound_after_undo') else 'without re-embedding'}; the "
                 f"first frame after it takes {b['first_frame_after_undo_ms']:.0f} ms (an ordinary frame: "
                 f"{b['ordinary_frame_ms']:.0f} ms; medians of three undo steps and of four "
                 f"ordinary frames).")
+    alone = report.get("lattice_modifier_alone")
+    if alone:
+        rows.append("")
+        rows.append(f"Blender's Lattice modifier alone (*lattice points* scene, median of three runs of "
+                    f"{FRAMES} frames): {alone['before']['median']:.1f} ms per frame before VP-FFD ran in "
+                    f"this process, {alone['after']['median']:.1f} ms after it (its kernels "
+                    f"{'loaded' if alone['kernels'] == 'ready' else 'not loaded: ' + alone['kernels']}, "
+                    f"its worker threads idle; this machine's speed drifts by tens of percent).")
     isl = report.get("islands")
     if isl:
         rows.append("")

@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import vpffd_addon as vp
 from ..vpffd_addon import linalg3
+from ..vpffd_addon.steps import NumpySteps
 from . import cage, compiled_backend, gpu_backend, meshio, modifier
 from .cache_modifier import find_cache, using_cache
 
@@ -209,6 +210,7 @@ class _Bound:
         self.gpu_binding = None
         self.last_binding = None  # the binding of the last solve (Auto uploads one used twice)
         self.backend = ("CPU", "")
+        self.costs = {}         # last solve's seconds per (path, vertices, options) for Auto
         self.settings = None
         self.deleted = None     # name of the lattice that the user deleted, for the panel
         self.cage_model = self.cage_key = None
@@ -228,11 +230,19 @@ class _Bound:
 
     def _solve(self, binding, P, options):
         """The pipeline's solver: the GPU path when the settings' backend and the machine allow
-        it, else (or when it fails) the CPU path."""
+        it (and for Auto, when this mesh's GPU solves measure faster than its CPU solves), else (or
+        when it fails) the CPU path: the compiled kernels when loaded, or NumPy's alone for
+        CPU (NumPy)."""
         s = self.settings
         fresh = binding is not self.gpu_binding and binding is not self.last_binding
         self.last_binding = binding
+        if s.backend == "NUMPY":
+            self.backend = ("CPU", "")
+            return binding.solve(P, steps=NumpySteps, **options)
         use_gpu, why = gpu_backend.choose(s.backend, binding.n_verts, options, binding, fresh)
+        key = (binding.n_verts, options["axes"], options["directions"] is not None, options["islands"])
+        if use_gpu and s.backend == "AUTO":
+            use_gpu, why = self._measured(key, why)
         if use_gpu:
             try:
                 if self.gpu is None or self.gpu_binding is not binding:
@@ -240,12 +250,24 @@ class _Bound:
                     self.gpu, self.gpu_binding = gpu_backend.GPUSolver(binding), binding
                 sol = self.gpu.solve(P, **options)
                 self.backend = ("GPU", why)
+                self.costs[("GPU",) + key] = sol.seconds
                 return sol
             except gpu_backend.GPUUnavailable as exc:
                 self.free()
                 why = f"the GPU failed, using the CPU: {exc}"
         self.backend = ("CPU", why)
-        return binding.solve(P, **options)
+        sol = binding.solve(P, **options)
+        self.costs[("CPU",) + key] = sol.seconds
+        return sol
+
+    def _measured(self, key, why):
+        """Auto's last word once both paths have solved this mesh with these options: (use_gpu,
+        reason). The GPU stays in use while its last solve was no slower than the CPU's."""
+        gpu, cpu = self.costs.get(("GPU",) + key), self.costs.get(("CPU",) + key)
+        if gpu is None or cpu is None or gpu <= cpu:
+            return True, why
+        return False, (f"Auto: this mesh solved in {1e3 * cpu:.1f} ms on the CPU against "
+                       f"{1e3 * gpu:.1f} ms on the GPU")
 
 
 def _directions(s, lat_matrix):
@@ -646,7 +668,7 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_we
         lattice_weights=lattice_weights, strength=s.strength, correct=correct, axes=axes,
         directions=directions, volume_scale=s.volume_scale, mobility=mobility, pins=pin_targets,
         islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
-        dtype=np.float32)
+        dtype=np.float32, use_compiled=s.backend != "NUMPY")
     return _Frame(helper=helper, inputs=inputs, signature=(settings, arrays),
                   faces_from=faces_from, lattice_matrix=M_lat, warnings=warnings,
                   stale_weights=stale_weights, editing=editing)
@@ -663,7 +685,8 @@ def _unchanged(state, frame):
 def _evaluate(state, frame):
     """The core's pipeline on `frame` (its solver picks the CPU or the GPU; on the CPU, the
     compiled kernels once they are loaded): a vp.FrameResult."""
-    compiled_backend.start()        # once per session; NumPy solves until the kernels are ready
+    if state.settings.backend != "NUMPY":
+        compiled_backend.start()    # once per session; NumPy solves until the kernels are ready
     state.backend = ("CPU", "")
     return state.pipeline.evaluate(frame.inputs)
 
@@ -696,10 +719,11 @@ def _publish(obj, state, frame, result, t0):
                 outside_follow=s.cage_outside == "FOLLOW" or isinstance(lattice, vp.Lattice),
                 editing=frame.editing)
     if backend == "CPU":
-        compiled = vp.compiled.ready() and isinstance(lattice, vp.Lattice)
+        compiled = s.backend != "NUMPY" and vp.compiled.ready() and isinstance(lattice, vp.Lattice)
         info["kernels"] = "compiled" if compiled else "NumPy"
         if not compiled:
-            info["kernels_why"] = ("cages solve with NumPy" if isinstance(lattice, vp.Cage)
+            info["kernels_why"] = ("Backend is CPU (NumPy): the reference path" if s.backend == "NUMPY"
+                                   else "cages solve with NumPy" if isinstance(lattice, vp.Cage)
                                    else compiled_backend.status()[1])
     if result.input_volume:
         # Sizes: a lattice that mirrors space turns the volume's sign with the shape.

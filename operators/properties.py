@@ -132,12 +132,19 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
                            description="Whether the mesh is bound to its lattice")
     backend: EnumProperty(
         name="Backend", default="AUTO", update=_settings_changed,
+        # Numbered: files saved before CPU (NumPy) existed keep their choice.
         items=[("AUTO", "Auto", "The GPU when a hardware GPU context exists, the mesh is large enough "
-                                "to gain, the settings allow it and the mesh keeps its place in the "
-                                "lattice from one frame to the next; otherwise the CPU"),
-               ("CPU", "CPU", "Always solve on the CPU (NumPy)"),
+                                "to gain, the settings allow it, the mesh keeps its place in the "
+                                "lattice from one frame to the next and the GPU's solves of this "
+                                "mesh measure faster than the CPU's; otherwise the CPU with the "
+                                "compiled kernels", 0),
+               ("CPU", "CPU", "Always solve on the CPU, with the compiled kernels once they are "
+                              "ready (NumPy while they compile, or where numba is missing, saying "
+                              "why)", 1),
+               ("NUMPY", "CPU (NumPy)", "Always solve on the CPU with NumPy only: the reference "
+                                        "path, no compiled kernels", 3),
                ("GPU", "GPU", "Solve with compute shaders whenever possible (falls back to the CPU, "
-                              "saying why, when it cannot)")],
+                              "saying why, when it cannot)", 2)],
         description="Where the per-frame solve runs")
     use_fold_attribute: BoolProperty(
         name="Fold Attribute", default=False, update=_settings_changed,

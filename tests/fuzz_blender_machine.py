@@ -37,7 +37,7 @@ SETTINGS = st.fixed_dictionaries({}, optional={
     "pin_vertex_group": st.sampled_from(["", "Pin", "Weights", "Missing"]),
     "pin_target": st.sampled_from(["empty", None, "mesh"]),
     "show_overlay": st.booleans(),
-    "backend": st.sampled_from(["AUTO", "CPU", "GPU"]),
+    "backend": st.sampled_from(["AUTO", "CPU", "NUMPY", "GPU"]),
     "use_fold_attribute": st.booleans(),
 })
 # Settings that bind (most of the time): what a sequence starts from.

@@ -113,3 +113,33 @@ def test_a_second_session_loads_the_kernels_from_the_cache(vpffd, tmp_path):
     assert first["misses"] >= len(first["names"]) and second["misses"] == 0, reports
     assert second["hits"] >= len(second["names"]), reports
     assert os.path.realpath(second["cache"]).startswith(os.path.realpath(str(user))), reports
+
+
+def test_cpu_numpy_solves_and_binds_with_numpy_alone_and_says_so(ext, monkeypatch):
+    """Backend CPU (NumPy) is the reference path: no compiled step or layout kernel runs, the panel
+    says why, and the shape is the compiled one's."""
+    engine, _, vp = _modules(ext)
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    compiled = evaluated_world(ball)[0]
+    assert engine.status(ball).kernels == "compiled"
+    used = []
+    real_steps, real_kernels = vp.compiled.CompiledSteps.__init__, vp.compiled.bind_kernels
+    monkeypatch.setattr(vp.compiled.CompiledSteps, "__init__", lambda self, b: (used.append("steps"), real_steps(self, b))[1])
+    monkeypatch.setattr(vp.compiled, "bind_kernels", lambda lattice: (used.append("layout"), real_kernels(lattice))[1])
+    ball.vpffd.backend = "NUMPY"
+    ball.location.x += 0.01                       # a new embedding: the bind runs too
+    bpy.context.view_layer.update()
+    info = engine.status(ball)
+    assert info.kernels == "NumPy" and "CPU (NumPy)" in info.kernels_why, info
+    assert info.volume_percent is not None and abs(info.volume_percent - 100.0) <= 1e-3
+    assert not used, used
+    ball.vpffd.backend = "CPU"
+    ball.location.x += 0.01
+    bpy.context.view_layer.update()
+    assert engine.status(ball).kernels == "compiled" and used == ["layout", "steps"], used
+    ball.location.x -= 0.02
+    ball.vpffd.backend = "NUMPY"
+    bpy.context.view_layer.update()
+    numpy_shape = evaluated_world(ball)[0]
+    assert np.abs(numpy_shape - compiled).max() <= 1e-6 * np.ptp(compiled, 0).max()

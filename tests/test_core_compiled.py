@@ -140,3 +140,15 @@ def test_bezier_and_one_point_axes_bind_with_numpy(kernels):
     assert compiled.bind_kernels(vp.Lattice((4, 4, 4), "BEZIER")) is None
     assert compiled.bind_kernels(vp.Lattice((4, 1, 4))) is None
     assert compiled.bind_kernels(vp.Lattice((4, 2, 4))) is not None
+
+
+def test_a_numpy_outside_the_supported_range_keeps_numpy_and_says_why():
+    code = ("import numpy as np\n"
+            "np.__version__ = '2.6.0'\n"                    # as a newer NumPy another extension brought
+            "from vpffd_addon import compiled\n"
+            "print(compiled.load(), compiled.why())\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
+                          env=dict(os.environ, PYTHONPATH=ROOT))
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == ("False NumPy 2.6.0 is outside the range the compiled kernels "
+                                   "support (1.24 to 2.5)"), proc.stdout

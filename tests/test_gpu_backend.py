@@ -377,3 +377,38 @@ def test_auto_offers_the_gpu_a_binding_only_once_a_second_frame_uses_it(vpffd, m
             # One embedding for every frame: never fresh again after its first solve.
             assert len(bindings) == 1 and not any(fresh), seen
     eh.reset_scene()
+
+
+def test_auto_goes_back_to_the_cpu_when_the_gpu_measures_slower(gb, vpffd, monkeypatch):
+    """Auto trusts measured times over its rules: with the software renderer taken for a hardware
+    GPU, the mesh is solved on the CPU first (a fresh embedding), then on the GPU (llvmpipe, much
+    slower), and from then on on the CPU again, the panel giving both times."""
+    import bpy
+    from . import extension_harness as eh
+    from .blender_ref import squash_lattice, triangle_mesh
+    engine, gpu_backend = vpffd.module.operators.engine, vpffd.module.operators.gpu_backend
+    monkeypatch.setattr(gpu_backend, "is_software_renderer", lambda: False)
+    eh.reset_scene()
+    verts, tris = vp.icosphere(6, 0.4)            # 40,962 vertices
+    monkeypatch.setattr(gpu_backend, "AUTO_MIN_VERTS", 1000)
+    ob = bpy.data.objects.new("Ball", triangle_mesh(verts, tris, "Ball"))
+    bpy.context.scene.collection.objects.link(ob)
+    lat, key = squash_lattice("L", (4, 4, 4), (1.0 / 3.0,) * 3, 0.6, 0.15)
+    for f, v in ((1, 0.2), (8, 0.9)):
+        key.value = v
+        key.keyframe_insert("value", frame=f)
+    ob.vpffd.lattice, ob.vpffd.axes, ob.vpffd.backend = lat, "XYZ", "AUTO"
+    bpy.context.scene.frame_set(1)
+    with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+        assert bpy.ops.object.vpffd_bind() == {"FINISHED"}
+    paths = [engine.stats(ob)["backend"]]
+    for f in range(2, 6):
+        bpy.context.scene.frame_set(f)
+        paths.append(engine.stats(ob)["backend"])
+    info = engine.stats(ob)
+    # (Bind solves twice: its own solve, the first, and the update after it.)
+    first_gpu = paths.index("GPU")
+    assert first_gpu <= 1 and set(paths[first_gpu + 1:]) == {"CPU"}, paths
+    assert info["backend_reason"].startswith("Auto: this mesh solved in "), info["backend_reason"]
+    assert abs(info["volume_percent"] - 100.0) <= 1e-3
+    eh.reset_scene()

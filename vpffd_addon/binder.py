@@ -8,7 +8,7 @@ from .lattice import Lattice
 
 
 def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None, outside="FOLLOW",
-         topology=None):
+         topology=None, use_compiled=True):
     """Bind a triangle mesh to `lattice` (a `Lattice`, or a `Cage` of any topology).
 
     rest_verts: (V, 3) vertex positions in lattice space. tris: (F, 3) vertex indices.
@@ -26,10 +26,13 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
     topology: a `Topology` of `tris` from an earlier bind (checked to match), so that binding the
     same mesh at new positions (it moved through the lattice) only re-embeds them. The layout of
     the result depends only on the arguments, never on an earlier binding.
+
+    use_compiled: lay a lattice binding out with the compiled kernels once `compiled.load()`
+    succeeded (the same arrays, bit for bit, in less time); False: NumPy, the reference.
     """
     if isinstance(lattice, Cage):
         return bind_cage(lattice, rest_verts, tris, influence, dtype, 3 if depth is None else depth,
                          outside, topology=topology)
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
-    return bind_lattice(lattice, rest_verts, tris, influence, dtype, depth, topology)
+    return bind_lattice(lattice, rest_verts, tris, influence, dtype, depth, topology, use_compiled)

@@ -44,11 +44,12 @@ class BindingBase:
         return verts
 
     def solve(self, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
-              mobility=None, pins=(), islands=False):
+              mobility=None, pins=(), islands=False, steps=None):
         """Volume-preserving FFD for control points `points` (N, 3): a `Solution`.
         The options are documented at `vpffd_addon.solve.solve`."""
         return solve(self, points, axes=axes, directions=directions, volume_scale=volume_scale,
-                     preserve_volume=preserve_volume, mobility=mobility, pins=pins, islands=islands)
+                     preserve_volume=preserve_volume, mobility=mobility, pins=pins, islands=islands,
+                     steps=steps)
 
     @property
     def influence(self):
@@ -205,7 +206,7 @@ class Binding(BindingBase):
 
 
 def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None,
-                 topology=None):
+                 topology=None, use_compiled=True):
     """`bind` for a `Lattice` (see `vpffd_addon.binder.bind`): a `Binding`."""
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
@@ -214,7 +215,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b = Binding()
     verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype, topology)
     V = b.n_verts
-    kernels = compiled.bind_kernels(lattice)
+    kernels = compiled.bind_kernels(lattice) if use_compiled else None
     taps = _lattice_taps(lattice, verts, kernels)
 
     # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded).

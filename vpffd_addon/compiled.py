@@ -22,6 +22,9 @@ from .volume import face_volumes
 
 #: numba releases the kernels are checked with (first, last), as (major, minor).
 NUMBA_RANGE = ((0, 61), (0, 68))
+#: NumPy releases numba 0.68 accepts (first, last): Blender shares one NumPy between extensions,
+#: and numba refuses a newer one at import; checked first, so that the panel says so plainly.
+NUMPY_RANGE = ((1, 24), (2, 5))
 
 _state = {"kernels": None, "why": "not loaded (vpffd_addon.compiled.load() compiles the kernels)"}
 
@@ -55,13 +58,17 @@ def _version(text):
 def load(cache=True):
     """Compile the kernels (or load them from numba's cache when `cache`). Returns True when they
     are ready; otherwise False, with `why()` saying why (numba missing, a version outside
-    `NUMBA_RANGE`, a compile error). The cache folder is numba's (`NUMBA_CACHE_DIR`, set by the
-    host before the first import of numba)."""
+    `NUMBA_RANGE`, a NumPy outside `NUMPY_RANGE`, a compile error). The cache folder is numba's
+    (`NUMBA_CACHE_DIR`, set by the host before the first import of numba)."""
     if _state["kernels"] is not None:
         return True
     if _state.get("loaded") is not None:
         _state["kernels"], _state["why"] = _state["loaded"], None
         return True
+    if not NUMPY_RANGE[0] <= _version(np.__version__) <= NUMPY_RANGE[1]:
+        lo, hi = (".".join(map(str, v)) for v in NUMPY_RANGE)
+        _state["why"] = f"NumPy {np.__version__} is outside the range the compiled kernels support ({lo} to {hi})"
+        return False
     try:
         import numba
     except Exception as exc:     # ImportError, or numba refusing this NumPy at import

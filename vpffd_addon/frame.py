@@ -42,6 +42,8 @@ class FrameInputs:
     volume that reaches the slot.
     cage_depth, cage_outside: for a `Cage`.
     dtype: the binding's float type.
+    use_compiled: bind with the compiled kernels once they are loaded (bit for bit NumPy's
+        binding); False binds with NumPy, the reference. The solve's kernels are the solver's.
     """
     positions: np.ndarray
     tris: object
@@ -61,6 +63,7 @@ class FrameInputs:
     cage_depth: int = 3
     cage_outside: str = "FOLLOW"
     dtype: object = np.float32
+    use_compiled: bool = True
 
 
 @dataclass
@@ -133,7 +136,7 @@ class Pipeline:
         extra = dict(depth=inp.cage_depth, outside=inp.cage_outside) if cage else {}
         self.binding = None   # never keep a binding whose inputs are not all in its key
         self.binding = bind(lat, verts, topology.tris, influence=influence, dtype=inp.dtype,
-                            topology=topology, **extra)
+                            topology=topology, use_compiled=inp.use_compiled, **extra)
         self._binding_key = (key, verts.copy(), influence.copy())
         return self.binding, True
 

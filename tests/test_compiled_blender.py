@@ -143,3 +143,65 @@ def test_cpu_numpy_solves_and_binds_with_numpy_alone_and_says_so(ext, monkeypatc
     bpy.context.view_layer.update()
     numpy_shape = evaluated_world(ball)[0]
     assert np.abs(numpy_shape - compiled).max() <= 1e-6 * np.ptp(compiled, 0).max()
+
+
+CHUNK_SESSION = r'''
+import bpy, hashlib, json, sys
+import numpy as np
+engine = __import__(module + ".operators.engine", fromlist=["engine"])
+frames = json.loads(open("frames.json").read())
+bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=4, radius=0.7)
+ob = bpy.context.active_object
+bpy.ops.object.add(type="LATTICE")
+lat = bpy.context.active_object
+lat.data.points_u = lat.data.points_v = lat.data.points_w = 4
+lat.scale = (2.0, 2.0, 2.0)
+# The mesh moves through the lattice (a new embedding on every frame) while the lattice's points
+# squash (a shape key): both kinds of compiled kernels run on every frame.
+lat.shape_key_add(name="Basis")
+key = lat.shape_key_add(name="Squash")
+for p in key.data:
+    p.co.z *= 0.6
+    p.co.x += 0.1 * p.co.z
+for f, x, v in ((1, -0.2, 0.0), (12, 0.25, 1.0)):
+    ob.location.x = x
+    ob.keyframe_insert("location", frame=f)
+    key.value = v
+    key.keyframe_insert("value", frame=f)
+bpy.context.scene.frame_set(1)
+ob.vpffd.lattice, ob.vpffd.axes = lat, "XYZ"
+with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
+    bpy.ops.object.vpffd_bind()
+out = {}
+for f in frames:
+    bpy.context.scene.frame_set(f)
+    ev = ob.evaluated_get(bpy.context.evaluated_depsgraph_get())
+    co = np.empty(len(ev.data.vertices) * 3, np.float32)
+    ev.data.vertices.foreach_get("co", co)
+    info = engine.status(ob)
+    out[str(f)] = [hashlib.sha256(co.tobytes()).hexdigest(), info.kernels, info.volume_percent]
+print("VPFFD-CHUNK " + json.dumps(out), flush=True)
+'''
+
+
+def test_chunked_renders_on_the_compiled_kernels_equal_one_render_bit_for_bit(vpffd, tmp_path):
+    """A farm renders a shot in chunks, each in a fresh `blender -b` that starts at its chunk's first
+    frame: every frame must come out bit for bit as in one render of the whole shot."""
+    import json
+    user = tmp_path / "user"
+    user.mkdir()
+    (tmp_path / "session.py").write_text(CHUNK_SESSION)
+    runs = {}
+    for name, frames in (("whole", list(range(1, 11))), ("chunk", [6, 7, 8, 9, 10]), ("backwards", [10, 8, 6])):
+        (user / "frames.json").write_text(json.dumps(frames))
+        proc = eh.run_in_fresh_process(vpffd.zip_path, str(user), str(tmp_path / "session.py"))
+        line = next((l for l in proc.stdout.splitlines() if l.startswith("VPFFD-CHUNK ")), None)
+        assert line is not None, (proc.stdout + proc.stderr)[-3000:]
+        runs[name] = json.loads(line[len("VPFFD-CHUNK "):])
+    whole = runs["whole"]
+    assert {k for _, k, _ in whole.values()} == {"compiled"}, whole
+    assert all(abs(v - 100.0) <= 1e-3 for _, _, v in whole.values()), whole
+    assert len({h for h, _, _ in whole.values()}) == len(whole)       # every frame differs
+    for name in ("chunk", "backwards"):
+        for f, (digest, kernels, _) in runs[name].items():
+            assert kernels == "compiled" and digest == whole[f][0], (name, f)

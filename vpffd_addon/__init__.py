@@ -14,6 +14,7 @@ from .binder import bind
 from .binding import Binding
 from .cage import Cage, box_cage, extrude
 from .cage_binding import CageBinding
+from .falloff import OUTSIDE_MODES, outside_factor
 from .fit import fit_lattice
 from .frame import FrameInputs, FrameResult, Pipeline
 from .jacobian import jacobian_det
@@ -24,6 +25,6 @@ from .shapes import box, icosphere
 from .solve import Solution
 from .volume import signed_volume
 
-__all__ = ["INTERPOLATIONS", "Binding", "Cage", "CageBinding", "FrameInputs", "FrameResult", "Lattice", "Pipeline", "Solution", "Topology", "bind", "box", "box_cage", "extrude", "icosphere",
-           "jacobian_det", "read_mdd", "read_pc2", "signed_volume", "write_mdd", "write_pc2"]
+__all__ = ["INTERPOLATIONS", "OUTSIDE_MODES", "Binding", "Cage", "CageBinding", "FrameInputs", "FrameResult", "Lattice", "Pipeline", "Solution", "Topology", "bind", "box", "box_cage", "extrude", "icosphere",
+           "jacobian_det", "outside_factor", "read_mdd", "read_pc2", "signed_volume", "write_mdd", "write_pc2"]
 __version__ = "0.1.0"

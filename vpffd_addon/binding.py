@@ -44,12 +44,12 @@ class BindingBase:
         return verts
 
     def solve(self, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
-              mobility=None, pins=(), islands=False, steps=None):
+              mobility=None, pins=(), islands=False, steps=None, target_volumes=None):
         """Volume-preserving FFD for control points `points` (N, 3): a `Solution`.
         The options are documented at `vpffd_addon.solve.solve`."""
         return solve(self, points, axes=axes, directions=directions, volume_scale=volume_scale,
                      preserve_volume=preserve_volume, mobility=mobility, pins=pins, islands=islands,
-                     steps=steps)
+                     steps=steps, target_volumes=target_volumes)
 
     @property
     def influence(self):

@@ -16,9 +16,10 @@ import numpy as np
 from . import lattice_eval
 from .binder import bind
 from .cage import Cage
+from .falloff import outside_factor
 from .jacobian import jacobian_det
 from .lattice import Lattice
-from .linalg3 import affine, affine_inverse
+from .linalg3 import affine, affine_inverse, det3
 from .mesh import Topology
 
 
@@ -44,6 +45,13 @@ class FrameInputs:
     dtype: the binding's float type.
     use_compiled: bind with the compiled kernels once they are loaded (bit for bit NumPy's
         binding); False binds with NumPy, the reference. The solve's kernels are the solver's.
+    outside, falloff: what a lattice does to positions outside its rest box (`falloff.py`:
+        "FOLLOW" as Blender's Lattice modifier, "FALLOFF" fading out over `falloff` lattice-size
+        units, "INSIDE" not at all); a factor on the influence, from the positions as they enter.
+    target_volumes: the volume to keep, in the object's space, instead of the volume that reaches
+        the slot (None): one number, or one per island with `islands` (e.g. the volume at Bind);
+        volume_scale multiplies it. When its count does not match the islands that reach the
+        slot, the frame keeps their own volume and says so in its warnings.
     """
     positions: np.ndarray
     tris: object
@@ -64,6 +72,9 @@ class FrameInputs:
     cage_outside: str = "FOLLOW"
     dtype: object = np.float32
     use_compiled: bool = True
+    outside: str = "FOLLOW"
+    falloff: float = 0.5
+    target_volumes: object = None
 
 
 @dataclass
@@ -79,6 +90,19 @@ class FrameResult:
     rebound: bool = False          #: whether this frame had to embed the positions anew
     solution: object = None        #: the `Solution` of a corrected frame
     outside: int = 0               #: positions outside the lattice's box (or the cage's region)
+    falloff: int = 0               #: positions the falloff moves partly (0 < factor < 1)
+    still: int = 0                 #: positions with no influence at all, left exactly in place
+    reference_volume: float = None  #: the volume aimed at before volume_scale: the input's, or
+    #: the given target's (lattice space)
+
+
+def _keep_still(positions, inputs, influence):
+    """(positions with every position of zero influence set back to exactly its input, how many
+    there are): no influence, no motion, not even the rounding of two transforms."""
+    still = influence == 0
+    if still.any():
+        positions[still] = np.asarray(inputs, dtype=np.float64)[still]
+    return positions, int(still.sum())
 
 
 class Pipeline:
@@ -160,6 +184,10 @@ class Pipeline:
             # group's weights interpolated with the lattice's basis (docs/stack.md).
             lw = lattice_eval.interpolate(lat, verts, np.asarray(inp.lattice_weights, np.float64))
             influence = weights * (weights * inp.strength) * lw
+        factor = None
+        if isinstance(lat, Lattice) and str(inp.outside).upper() != "FOLLOW":
+            factor = outside_factor(lat, verts, inp.outside, inp.falloff)
+            influence = influence * factor
         # Strength scales every displacement alike: it scales the control points' displacement.
         P_used = grid + float(inp.strength) * (P - grid)
         back = affine_inverse(M)
@@ -170,14 +198,26 @@ class Pipeline:
                 raise ValueError("no faces: the volume cannot be corrected")
             out = verts + influence[:, None] * lattice_eval.interpolate(lat, verts, P_used - grid)
             outside = lat.outside_count(verts) if isinstance(lat, Lattice) else 0
-            return FrameResult(positions=affine(out, back), points=P_used, outside=outside)
+            positions, still = _keep_still(affine(out, back), inp.positions, influence)
+            return FrameResult(positions=positions, points=P_used, outside=outside, still=still)
         binding, rebound = self._embed(inp, verts, influence)
         warnings = []
         solution = None
+        reference = binding.rest_volume
         if inp.correct:
             options = dict(axes=inp.axes, directions=inp.directions, volume_scale=inp.volume_scale,
                            preserve_volume=bool(inp.axes or inp.directions is not None),
                            mobility=inp.mobility, pins=inp.pins, islands=inp.islands)
+            if inp.target_volumes is not None:
+                target = np.asarray(inp.target_volumes, dtype=np.float64).reshape(-1)
+                if target.shape == ((binding.n_islands,) if inp.islands else (1,)):
+                    # Volumes in lattice space are the object's times det(M) (M: object -> lattice).
+                    options["target_volumes"] = target * float(det3(M[:3, :3]))
+                    reference = float(options["target_volumes"].sum())
+                else:
+                    warnings.append(f"the target holds {target.size} island volume(s), but "
+                                    f"{binding.n_islands} island(s) reach VP-FFD: keeping their own "
+                                    "volume on this frame")
             try:
                 solution = (self.solver(binding, P_used, options) if self.solver is not None
                             else binding.solve(P_used, **options))
@@ -191,10 +231,13 @@ class Pipeline:
         else:
             sol = binding.solve(P_used, axes="", preserve_volume=False)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
-        return FrameResult(positions=affine(out, back), points=used, input_volume=binding.rest_volume,
+        positions, still = _keep_still(affine(out, back), inp.positions, influence)
+        falloff = 0 if factor is None else int(((factor > 0) & (factor < 1)).sum())
+        return FrameResult(positions=positions, points=used, input_volume=binding.rest_volume,
                            volume=volume, plain_volume=plain, warnings=tuple(warnings),
                            binding=binding, rebound=rebound, solution=solution,
-                           outside=int(binding.n_outside))
+                           outside=int(binding.n_outside), falloff=falloff, still=still,
+                           reference_volume=reference)
 
     @staticmethod
     def folds(result):

@@ -27,7 +27,7 @@ class Solution:
     verts: np.ndarray                 #: (V, 3) deformed, volume-corrected vertices
     points: np.ndarray                #: (N, 3) corrected control points: deform(points) == verts
     volume: float                     #: volume of `verts`
-    target_volume: float              #: volume_scale * rest volume
+    target_volume: float              #: volume_scale * the rest volume (or the given target)
     plain_volume: float               #: volume of the plain FFD of the input points
     directions: np.ndarray            #: (m, 3) unit directions that were used, in order
     island_volumes: np.ndarray = None         #: (k,) per-island volumes when islands=True
@@ -334,12 +334,15 @@ def _volumes(b, verts, islands):
 
 
 def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preserve_volume=True,
-          mobility=None, pins=(), islands=False, steps=None):
+          mobility=None, pins=(), islands=False, steps=None, target_volumes=None):
     """Volume-preserving FFD of `binding` for control points `points` (N, 3).
 
     axes: correction directions as a string of distinct letters from "XYZ" (lattice axes), applied
         in that order; or directions: (m, 3) rows (normalised here), e.g. world axes in lattice space.
     volume_scale: target volume as a multiple of the rest volume (per island with islands=True).
+    target_volumes: the volume to keep instead of the rest volume, in the binding's space: one
+        number, or (n_islands,) with islands=True (e.g. the volume a mesh had when it was bound,
+        before an Armature changed it); volume_scale multiplies it.
     preserve_volume: False turns off the volume rows (plain direct manipulation with pins).
     mobility: (N,) in [0, 1], how freely each control point may move (0 keeps it fixed; Remark 2).
     pins: (vertex index, (x, y, z) target) pairs; each pinned vertex lands on its target along the
@@ -369,7 +372,16 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     missing = [what for what, needed in needs.items() if needed and what not in caps]
     if missing:
         raise ValueError(f"these solve steps cannot do {', '.join(missing)}")
-    targets = scale * (b.rest_island_volumes if islands else np.array([b.rest_volume]))
+    base = b.rest_island_volumes if islands else np.array([b.rest_volume])
+    if target_volumes is not None:
+        given = np.asarray(target_volumes, dtype=np.float64).reshape(-1)
+        if given.shape != base.shape:
+            raise ValueError(f"target_volumes must hold {len(base)} volume{'s' if len(base) > 1 else ''} "
+                             f"({'one per island' if islands else 'the total'}), got {given.size}")
+        if not np.isfinite(given).all():
+            raise ValueError("target_volumes must be finite")
+        base = given
+    targets = scale * base
     if not np.isfinite(targets).all():
         raise ValueError(f"volume_scale {volume_scale!r} makes the target volume overflow")
     st = _State(b, points, mob, (pin_slots, pin_targets, pin_index), bool(islands), targets, steps)

@@ -27,6 +27,7 @@ PIN_ATTRIBUTE = "vpffd_pin"         # pinned vertices, in files of earlier versi
 PIN_PROPERTY = "vpffd_pins"         # on the solver helper: the pinned vertices' indices
 JACOBIAN_ATTRIBUTE = "vpffd_jacobian"  # det of the deformation's Jacobian (on request)
 CAGE_REST_PROPERTY = "vpffd_cage_rest"  # on the helper: the cage's points at Bind, flat, cage space
+BIND_VOLUME_PROPERTY = "vpffd_bind_volumes"  # on the helper: each island's volume at Bind (object space)
 FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request only (Check Folds)
 
 _cache = {}   # object session_uid -> _Bound
@@ -40,7 +41,8 @@ class BindError(ValueError):
 @dataclasses.dataclass
 class Status:
     """What the last update of an object found: the panel shows these fields. Volumes are
-    percentages of the volume that reached the VP-FFD slot; None where not known."""
+    percentages of the reference volume: the volume that reached the VP-FFD slot, or with
+    Target: Bind the volume at Bind; None where not known."""
     error: Optional[str] = None            #: why nothing (or only the input) is shown, in words
     switched_off: bool = False             #: the modifier is off in the viewport
     paused: Optional[str] = None           #: why VP-FFD is not solving now (no figures then)
@@ -58,6 +60,12 @@ class Status:
     rebound: bool = False                  #: whether this update embedded the input anew
     outside: Optional[int] = None          #: points outside the lattice's box or cage's region
     outside_follow: bool = True            #: whether those follow the boundary (else they stay)
+    outside_mode: str = "FOLLOW"           #: the lattice's Outside setting as solved
+    falloff: Optional[int] = None          #: points the falloff moves partly
+    still: Optional[int] = None            #: points with no influence (left exactly in place)
+    beyond: Optional[int] = None           #: points the Outside setting keeps still
+    target_from: Optional[str] = None      #: "bind" when the volume at Bind is the reference
+    input_percent: Optional[float] = None  #: the input's volume, with Target: Bind
     editing: bool = False                  #: solved from the mesh as edited (its Edit Mode)
     kernels: Optional[str] = None          #: on the CPU: "compiled" or "NumPy"
     kernels_why: Optional[str] = None      #: why NumPy's kernels ran, in words
@@ -210,6 +218,7 @@ class _Bound:
         self.gpu_binding = None
         self.last_binding = None  # the binding of the last solve (Auto uploads one used twice)
         self.backend = ("CPU", "")
+        self.matrix = None      # object -> lattice space of the last solve
         self.costs = {}         # last solve's seconds per (path, vertices, options) for Auto
         self.settings = None
         self.deleted = None     # name of the lattice that the user deleted, for the panel
@@ -292,6 +301,20 @@ def _pins(s, obj, helper):
         return np.array(saved.to_list() if hasattr(saved, "to_list") else saved, np.int64)
     pins = _float_attribute(obj.data, PIN_ATTRIBUTE)        # a file bound by an earlier version
     return np.zeros(0, np.int64) if pins is None else np.flatnonzero(pins > 0)
+
+
+def _bind_target(s, helper, warnings):
+    """The volumes Target: Bind keeps (object space; one per island with Per-Island Volume, else
+    their sum), or None for Target: Input or when none were captured (a warning then says so)."""
+    if s.target != "BIND":
+        return None
+    saved = helper.get(BIND_VOLUME_PROPERTY)
+    if saved is None:
+        warnings.append("Target is Bind, but no volume was captured at Bind (bound by an earlier "
+                        "version): keeping the input's volume; Re-bind to capture it")
+        return None
+    volumes = np.array(saved.to_list() if hasattr(saved, "to_list") else saved, np.float64)
+    return volumes if s.use_islands else np.array([volumes.sum()])
 
 
 def _pin_targets(s, pins, X, lat_matrix, ob_matrix):
@@ -658,7 +681,11 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_we
                         "VP-FFD are not known yet; they are passed along from the next "
                         "evaluation on")
         correct = False
-    settings = (axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
+    target_volumes = _bind_target(s, helper, warnings)
+    outside = s.outside if isinstance(lattice, vp.Lattice) else "FOLLOW"   # a cage has its own rule
+    settings = (outside, s.falloff_distance, s.target,
+                None if target_volumes is None else target_volumes.tobytes(),
+                axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
                 s.use_fold_attribute, cage_options, faces_from, state.faces_key, editing, type(lattice).__name__,
                 getattr(lattice, "shape", None), getattr(lattice, "interpolation", None))
     arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions,
@@ -668,7 +695,8 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_we
         lattice_weights=lattice_weights, strength=s.strength, correct=correct, axes=axes,
         directions=directions, volume_scale=s.volume_scale, mobility=mobility, pins=pin_targets,
         islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
-        dtype=np.float32, use_compiled=s.backend != "NUMPY")
+        dtype=np.float32, use_compiled=s.backend != "NUMPY", outside=outside,
+        falloff=s.falloff_distance, target_volumes=target_volumes)
     return _Frame(helper=helper, inputs=inputs, signature=(settings, arrays),
                   faces_from=faces_from, lattice_matrix=M_lat, warnings=warnings,
                   stale_weights=stale_weights, editing=editing)
@@ -708,6 +736,7 @@ def _publish(obj, state, frame, result, t0):
     state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
     edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
     state.overlay = (meshio.transform(result.points, frame.lattice_matrix), edges)
+    state.matrix = frame.inputs.matrix      # object -> lattice space of this solve
     binding = result.binding
     backend, backend_reason = state.backend
     s = state.settings
@@ -716,7 +745,10 @@ def _publish(obj, state, frame, result, t0):
                 backend_reason=backend_reason, n_verts=len(X), folds=None,
                 closed=None if binding is None else binding.is_closed,
                 input_volume=result.input_volume, rebound=result.rebound, outside=result.outside,
-                outside_follow=s.cage_outside == "FOLLOW" or isinstance(lattice, vp.Lattice),
+                outside_follow=(frame.inputs.outside == "FOLLOW" if isinstance(lattice, vp.Lattice)
+                                else s.cage_outside == "FOLLOW"),
+                outside_mode=frame.inputs.outside, falloff=result.falloff, still=result.still,
+                beyond=result.beyond,
                 editing=frame.editing)
     if backend == "CPU":
         compiled = s.backend != "NUMPY" and vp.compiled.ready() and isinstance(lattice, vp.Lattice)
@@ -725,10 +757,14 @@ def _publish(obj, state, frame, result, t0):
             info["kernels_why"] = ("Backend is CPU (NumPy): the reference path" if s.backend == "NUMPY"
                                    else "cages solve with NumPy" if isinstance(lattice, vp.Cage)
                                    else compiled_backend.status()[1])
-    if result.input_volume:
+    reference = result.reference_volume
+    if reference:
         # Sizes: a lattice that mirrors space turns the volume's sign with the shape.
-        info["volume_percent"] = 100.0 * abs(result.volume / result.input_volume)
-        info["plain_percent"] = 100.0 * abs(result.plain_volume / result.input_volume)
+        info["volume_percent"] = 100.0 * abs(result.volume / reference)
+        info["plain_percent"] = 100.0 * abs(result.plain_volume / reference)
+        if result.target_given:
+            info["target_from"] = "bind"
+            info["input_percent"] = 100.0 * abs(result.input_volume / reference)
     if binding is not None:
         if s.use_fold_attribute and frame.faces_from == "mesh" and obj.data.library is None:
             det = vp.jacobian_det(binding, result.points)
@@ -864,7 +900,8 @@ def bind(obj, depsgraph):
     # What Bind saves goes on the solver helper, local data even when the mesh is linked.
     helper = modifier.helper(obj)
     for key, value in ((PIN_PROPERTY, np.flatnonzero(pins > 0).tolist() if pins.any() else None),
-                       (CAGE_REST_PROPERTY, None if cage_rest is None else cage_rest.ravel().tolist())):
+                       (CAGE_REST_PROPERTY, None if cage_rest is None else cage_rest.ravel().tolist()),
+                       (BIND_VOLUME_PROPERTY, None)):   # captured below, from this Bind's input
         if value is not None:
             helper[key] = value
         elif key in helper:
@@ -879,10 +916,17 @@ def bind(obj, depsgraph):
     if info.error:
         unbind(obj)
         raise BindError(info.error)
-
-    warnings = []
     state = _cache[obj.session_uid]
     b = state.result.binding if state.result is not None else None
+    if b is not None:
+        # Target: Bind keeps these: each island's volume as it reached the slot now, in the
+        # object's space (the binding measured it in lattice space).
+        helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / linalg3.det3(state.matrix[:3, :3])).tolist()
+        if s.target == "BIND":
+            update(obj, depsgraph, force=True)
+            info = status(obj)
+
+    warnings = []
     if b is not None and not b.is_closed:
         warnings.append("the mesh is not closed: the volume of an open surface is measured about "
                         "the lattice centre")
@@ -900,9 +944,13 @@ def bind(obj, depsgraph):
 def outside_message(info, is_cage):
     """Words for `info.outside` points of `info.n_verts` outside the lattice or cage."""
     where = "the cage's region" if is_cage else "the lattice"
-    what = ("they follow its boundary" if info.outside_follow else "they stay where they are")
-    if not is_cage:
-        what += ", as with the Lattice modifier"
+    if not is_cage and info.outside_mode == "FALLOFF":
+        what = (f"the deformation fades out over {info.falloff:,} of them; "
+                f"{info.beyond or 0:,} beyond the falloff distance stay where they are")
+    else:
+        what = ("they follow its boundary" if info.outside_follow else "they stay where they are")
+        if not is_cage and info.outside_follow:
+            what += ", as with the Lattice modifier"
     return f"{info.outside:,} of {info.n_verts:,} vertices lie outside {where} ({what})"
 
 

@@ -108,19 +108,51 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
         col = self.draw_split().column()
         col.prop(s, "cage_depth")
         col.prop(s, "cage_outside")
+        if s.outside == "FALLOFF":
+            message(col, context, "Outside: Falloff is for lattices (a cage's region is not a box): "
+                                  "this cage's own Outside applies", icon="INFO")
+
+
+class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
+    bl_label = "Outside"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        s = _settings(context)
+        return s is not None and not cage.is_cage(s.lattice)
+
+    def draw(self, context: bpy.types.Context) -> None:
+        ob = context.object
+        s = ob.vpffd
+        col = self.draw_split().column()
+        col.prop(s, "outside")
+        sub = col.column()
+        sub.active = s.outside == "FALLOFF"
+        sub.prop(s, "falloff_distance")
+        info = engine.status(ob)
+        if s.is_bound and info.outside:
+            message(col, context, engine.outside_message(info, False), icon="INFO")
 
 
 class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
     bl_label = "Correction"
 
     def draw(self, context: bpy.types.Context) -> None:
-        s = context.object.vpffd
+        ob = context.object
+        s = ob.vpffd
         col = self.draw_split().column()
         col.prop(s, "axes")
         sub = col.column()
         sub.active = s.axes != "NONE"
         sub.prop(s, "space")
         sub.prop(s, "volume_scale")
+        sub.prop(s, "target")
+        if s.target == "BIND" and s.is_bound:
+            info = engine.status(ob)
+            if info.input_percent is not None:
+                message(sub, context, f"what reaches VP-FFD has {info.input_percent:.3f}% of the "
+                                      "volume at Bind", icon="INFO")
         if s.lattice is not None:
             sub.prop_search(s, "mobility_group", s.lattice, "vertex_groups", text="Mobility Group")
         else:
@@ -211,9 +243,13 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
         if info.editing:
             message(layout, context, "Edit Mode: solved live from the mesh as edited", icon="EDITMODE_HLT")
         if info.volume_percent is not None:
-            what = "the mesh as edited" if info.editing else "its input"
+            what = ("its volume at Bind" if info.target_from == "bind" else
+                    "the mesh as edited" if info.editing else "its input")
             message(layout, context, f"volume {info.volume_percent:.4f}% of {what} "
                                      f"(plain lattice: {info.plain_percent:.4f}%)", icon="CHECKMARK")
+            if info.input_percent is not None:
+                message(layout, context, f"its input: {info.input_percent:.4f}% of the volume at Bind",
+                        icon="INFO")
         if info.seconds is not None:
             kernels = f" ({info.kernels} kernels)" if info.kernels else ""
             message(layout, context, f"solved in {1e3 * info.seconds:.1f} ms on the {info.backend}"
@@ -235,6 +271,6 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
             message(layout, context, text, icon="ERROR")
 
 
-classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_correction, OBJECT_PT_vpffd_pins,
+classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction, OBJECT_PT_vpffd_pins,
            OBJECT_PT_vpffd_folds, OBJECT_PT_vpffd_overlay, OBJECT_PT_vpffd_bake,
            OBJECT_PT_vpffd_status)

@@ -71,6 +71,19 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
                                     "of its boundary"),
                ("STAY", "Stay", "Vertices outside the cage's region do not move")],
         description="What vertices outside a cage's region do")
+    outside: EnumProperty(
+        name="Outside", default="FOLLOW", update=_settings_changed,
+        items=[("FOLLOW", "Follow", "Vertices outside the lattice follow its boundary, as with "
+                                    "Blender's Lattice modifier"),
+               ("FALLOFF", "Falloff", "The deformation fades out smoothly outside the lattice, over "
+                                      "Falloff Distance, with no seam at the lattice's faces; the "
+                                      "volume is still kept"),
+               ("INSIDE", "Inside Only", "Vertices outside the lattice do not move")],
+        description="What the lattice does to the vertices outside its box")
+    falloff_distance: FloatProperty(
+        name="Falloff Distance", default=0.5, min=0.001, soft_max=2.0, update=_settings_changed,
+        description="How far outside the lattice the deformation fades to nothing, in lattice sizes "
+                    "per side (1: the lattice's own size along each axis)")
     vertex_group: StringProperty(
         name="Vertex Group", update=_settings_changed,
         description="Vertex group that scales the deformation per vertex, as the Lattice modifier's (read live)")
@@ -91,6 +104,13 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
     volume_scale: FloatProperty(
         name="Volume Scale", default=1.0, min=0.0, soft_min=0.5, soft_max=2.0, update=_settings_changed,
         description="Target volume as a multiple of the rest volume (animate it to breathe or inflate)")
+    target: EnumProperty(
+        name="Target", default="INPUT", update=_settings_changed,
+        items=[("INPUT", "Input", "Keep the volume of what reaches VP-FFD, on every frame"),
+               ("BIND", "Bind", "Keep the volume the mesh had at Bind (what reached VP-FFD then): "
+                                "restores volume lost before VP-FFD in the stack, e.g. by an "
+                                "Armature's bend; Re-bind captures it again")],
+        description="Which volume the correction keeps (times Volume Scale)")
     mobility_group: StringProperty(
         name="Mobility Group", update=_settings_changed,
         description="Vertex group of the lattice or cage: how freely each point may move for the correction "

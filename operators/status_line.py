@@ -22,7 +22,8 @@ def headline(info, bound, using_cache):
         if info.seconds is not None:
             return "deforming as the Lattice modifier does (Correction: None)", "CHECKMARK"
         return "waiting for the next update", "TIME"
-    what = "the mesh as edited" if info.editing else "its input"
+    what = ("its volume at Bind" if info.target_from == "bind" else
+            "the mesh as edited" if info.editing else "its input")
     text = f"volume {info.volume_percent:.3f}% of {what}"
     if info.warnings:
         return text + f" ({len(info.warnings)} warning{'s' if len(info.warnings) > 1 else ''} "\

@@ -412,3 +412,23 @@ def test_auto_goes_back_to_the_cpu_when_the_gpu_measures_slower(gb, vpffd, monke
     assert info["backend_reason"].startswith("Auto: this mesh solved in "), info["backend_reason"]
     assert abs(info["volume_percent"] - 100.0) <= 1e-3
     eh.reset_scene()
+
+
+def test_falloff_and_a_bind_target_solve_on_the_gpu_as_on_the_cpu(gb):
+    """Outside: Falloff is a factor on the influence and Target: Bind a given target volume: the
+    GPU path takes both through the one solve driver, with the CPU's results."""
+    v, f = vp.icosphere(4, 0.45)
+    v = v + [0.5, 0.0, 0.0]                                   # half outside the lattice
+    lat = vp.Lattice((4, 4, 4), "BSPLINE")
+    factor = vp.outside_factor(lat, v, "FALLOFF", 0.3)
+    b = vp.bind(lat, v, f, influence=factor, dtype=np.float32)
+    P = lat.rest_points.copy()
+    P[:, 2] *= 0.7
+    target = 1.02 * b.rest_volume                             # e.g. a volume lost before the slot
+    gpu = gb.GPUSolver(b).solve(P, axes="XYZ", target_volumes=target)
+    cpu = b.solve(P, axes="XYZ", target_volumes=target)
+    assert abs(gpu.volume / target - 1) <= 1e-5 and abs(cpu.volume / target - 1) <= 1e-5
+    assert np.abs(gpu.verts - cpu.verts).max() <= 1e-6 * lat.size
+    beyond = factor == 0
+    assert beyond.sum() > 20
+    np.testing.assert_allclose(gpu.verts[beyond], v[beyond], rtol=0, atol=1e-6)

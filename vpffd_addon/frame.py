@@ -91,9 +91,11 @@ class FrameResult:
     solution: object = None        #: the `Solution` of a corrected frame
     outside: int = 0               #: positions outside the lattice's box (or the cage's region)
     falloff: int = 0               #: positions the falloff moves partly (0 < factor < 1)
+    beyond: int = 0                #: positions beyond the falloff (or outside, Inside Only): factor 0
     still: int = 0                 #: positions with no influence at all, left exactly in place
     reference_volume: float = None  #: the volume aimed at before volume_scale: the input's, or
     #: the given target's (lattice space)
+    target_given: bool = False     #: whether the given target_volumes were kept (not the input's)
 
 
 def _keep_still(positions, inputs, influence):
@@ -233,11 +235,12 @@ class Pipeline:
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
         positions, still = _keep_still(affine(out, back), inp.positions, influence)
         falloff = 0 if factor is None else int(((factor > 0) & (factor < 1)).sum())
+        beyond = 0 if factor is None else int((factor == 0).sum())
         return FrameResult(positions=positions, points=used, input_volume=binding.rest_volume,
                            volume=volume, plain_volume=plain, warnings=tuple(warnings),
                            binding=binding, rebound=rebound, solution=solution,
-                           outside=int(binding.n_outside), falloff=falloff, still=still,
-                           reference_volume=reference)
+                           outside=int(binding.n_outside), falloff=falloff, beyond=beyond, still=still,
+                           reference_volume=reference, target_given=reference is not binding.rest_volume)
 
     @staticmethod
     def folds(result):

@@ -1,0 +1,157 @@
+"""Outside the lattice and Target: Bind, in Blender, measured on evaluated meshes:
+- Outside: Follow with Correction None equals Blender's Lattice modifier on a twin, for a mesh half
+  outside the lattice;
+- Falloff keeps the volume (float32 coordinates Blender stores), vertices beyond the falloff
+  distance stay exactly where they are, and the panel counts the ones it fades;
+- Inside Only leaves every outside vertex exactly in place;
+- Target: Bind gives back, after an Armature's bend, the volume the mesh had at Bind, per island
+  too, and keeps doing so after the file is saved and opened again.
+"""
+import math
+
+import numpy as np
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
+
+from .blender_ref import (bind as _bind, bone_weights_by_height, evaluated_world,  # noqa: E402
+                          squash_lattice, triangle_mesh, two_bone_armature)
+
+pytestmark = pytest.mark.blender
+
+
+def _engine(ext):
+    return ext.module.operators.engine
+
+
+def _volume(co, tris):
+    a, b, c = co[tris[:, 0]], co[tris[:, 1]], co[tris[:, 2]]
+    return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+
+def _mesh_co(ob):
+    co = np.empty(len(ob.data.vertices) * 3, np.float32)
+    ob.data.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3).astype(np.float64)
+
+
+def _half_outside(name):
+    """A ball whose centre sits on the lattice's +X face, and the lattice (squashed by a key)."""
+    v, f = core.icosphere(4, 0.45)
+    ob = bpy.data.objects.new(name, triangle_mesh(v + [0.5, 0.0, 0.0], f, name))
+    bpy.context.scene.collection.objects.link(ob)
+    return ob, f
+
+
+def _squashed(name):
+    # A 4-point axis spans 3 units in the lattice's own space: a third of that is the unit box.
+    lat, key = squash_lattice(name, (4, 4, 4), (1.0 / 3.0,) * 3, 0.6, 0.15, shear=0.1)
+    key.value = 1.0
+    return lat
+
+
+def test_follow_with_correction_none_equals_the_lattice_modifier_outside_too(ext):
+    ob, _ = _half_outside("Ball")
+    twin, _ = _half_outside("Twin")
+    lat = _squashed("L")
+    twin.modifiers.new("Lattice", "LATTICE").object = lat
+    assert _bind(ob, lattice=lat, axes="NONE", outside="FOLLOW") == {"FINISHED"}
+    ours, theirs = evaluated_world(ob)[0], evaluated_world(twin)[0]
+    assert _engine(ext).status(ob).outside > 100
+    assert np.abs(ours - theirs).max() <= 1e-6 * np.ptp(theirs, 0).max()
+
+
+def test_falloff_keeps_the_volume_and_leaves_vertices_beyond_it_in_place(ext):
+    ob, tris = _half_outside("Ball")
+    lat = _squashed("L")
+    rest = _mesh_co(ob)
+    assert _bind(ob, lattice=lat, axes="XYZ", outside="FALLOFF", falloff_distance=0.25) == {"FINISHED"}
+    co = evaluated_world(ob)[0]
+    assert abs(_volume(co, tris) / _volume(rest, tris) - 1) <= 1e-5
+    # The lattice spans [-0.5, 0.5] per axis in the object's space (both at the origin), so the
+    # distance in lattice sizes is the excess itself.
+    excess = np.maximum(np.abs(rest) - 0.5, 0.0)
+    d = np.sqrt((excess ** 2).sum(1))
+    beyond, fading = d >= 0.25, (d > 0) & (d < 0.25)
+    assert beyond.sum() > 50 and fading.sum() > 50
+    np.testing.assert_array_equal(co[beyond], rest[beyond])
+    info = _engine(ext).status(ob)
+    assert info.falloff == fading.sum() and info.beyond == beyond.sum(), info
+    assert "fades out over" in _engine(ext).outside_message(info, False)
+    # Follow moves the far vertices with the clamped boundary, as Blender's modifier does.
+    ob.vpffd.outside = "FOLLOW"
+    bpy.context.view_layer.update()
+    assert np.abs(evaluated_world(ob)[0][beyond] - rest[beyond]).max() > 1e-2
+
+
+def test_inside_only_leaves_outside_vertices_exactly_in_place(ext):
+    ob, tris = _half_outside("Ball")
+    lat = _squashed("L")
+    rest = _mesh_co(ob)
+    assert _bind(ob, lattice=lat, axes="XYZ", outside="INSIDE") == {"FINISHED"}
+    co = evaluated_world(ob)[0]
+    outside = (np.abs(rest) > 0.5 + 1e-6).any(1)
+    assert outside.sum() > 100
+    np.testing.assert_array_equal(co[outside], rest[outside])
+    assert np.abs(co[~outside] - rest[~outside]).max() > 1e-2
+    assert abs(_volume(co, tris) / _volume(rest, tris) - 1) <= 1e-5
+
+
+def _arm(name, centres):
+    """Closed tubes (one island per centre) along Z through an elbow at the origin, weighted to a
+    two-bone rig that bends 70 degrees between frames 1 and 10, and a lattice around the elbow."""
+    verts, tris = [], []
+    for cx in centres:
+        v, f = core.icosphere(4, 1.0)
+        v = v * [0.12, 0.12, 0.6] + [cx, 0.0, 0.0]
+        tris.append(f + sum(len(x) for x in verts))
+        verts.append(v)
+    verts, tris = np.vstack(verts), np.vstack(tris)
+    ob = bpy.data.objects.new(name, triangle_mesh(verts, tris, name))
+    bpy.context.scene.collection.objects.link(ob)
+    rig = two_bone_armature(name + "Rig", 0.6, bend=math.radians(70), frames=(1, 10))
+    bone_weights_by_height(ob, 0.2)
+    ob.modifiers.new("Armature", "ARMATURE").object = rig
+    lt = bpy.data.lattices.new(name + "L")
+    lt.points_u = lt.points_v = lt.points_w = 4
+    lat = bpy.data.objects.new(name + "L", lt)
+    lat.scale = (0.8 / 3, 0.4 / 3, 0.5 / 3)     # around the elbow: 0.8 x 0.4 x 0.5
+    bpy.context.scene.collection.objects.link(lat)
+    return ob, tris, lat
+
+
+@pytest.mark.parametrize("islands", [False, True])
+def test_target_bind_gives_back_the_volume_the_armature_takes(ext, tmp_path, islands):
+    centres = (-0.2, 0.2) if islands else (0.0,)
+    ob, tris, lat = _arm("Arm", centres)
+    scene = bpy.context.scene
+    scene.frame_set(1)
+    rest = _mesh_co(ob)                                # the rest pose reaches the slot at Bind
+    per = len(rest) // len(centres)
+    groups = [tris[(tris >= k * per).all(1) & (tris < (k + 1) * per).all(1)] for k in range(len(centres))]
+    bind_volumes = [_volume(rest, g) for g in groups]
+    assert _bind(ob, lattice=lat, axes="XYZ", target="BIND", use_islands=islands,
+                 outside="FALLOFF", falloff_distance=0.5) == {"FINISHED"}
+    scene.frame_set(10)
+    co = evaluated_world(ob)[0]
+    info = _engine(ext).status(ob)
+    assert info.target_from == "bind" and info.input_percent < 99.5, info   # the bend lost volume
+    got = [_volume(co, g) for g in groups]
+    np.testing.assert_allclose(got, bind_volumes, rtol=1e-5)
+    assert abs(info.volume_percent - 100.0) <= 1e-3
+    # Target: Input keeps the bent input's volume instead (what the Armature left).
+    ob.vpffd.target = "INPUT"
+    bpy.context.view_layer.update()
+    assert abs(_volume(evaluated_world(ob)[0], tris) / sum(bind_volumes) - info.input_percent / 100) <= 1e-5
+    ob.vpffd.target = "BIND"
+    # Saved with the file: open it again and the volume at Bind still holds.
+    path = str(tmp_path / "arm.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    ob = bpy.data.objects["Arm"]
+    bpy.context.scene.frame_set(9)
+    bpy.context.scene.frame_set(10)
+    again = evaluated_world(ob)[0]
+    np.testing.assert_allclose([_volume(again, g) for g in groups], bind_volumes, rtol=1e-5)

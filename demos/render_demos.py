@@ -1,6 +1,7 @@
 """Render the VP-FFD demo scenes headless and measure their volumes: `./dev demo [options]`.
 
-For each demo (the bouncing ball, the twisting cube and the squeezed tube of the Add menu) this
+For each demo (the bouncing ball, the twisting cube, the squeezed tube and the bent arm of the Add
+menu) this
 builds the extension
 zip with Blender's own builder, installs it through Blender's own installer into a private
 BLENDER_USER_RESOURCES folder (set before bpy is imported; the real Blender configuration is never
@@ -26,7 +27,7 @@ and a table on the terminal (every 5th frame, the first and last, and the frames
 Lattice modifier's volume is lowest). Exits with status 1 when a VP-FFD object's volume leaves
 its rest volume by more than 1e-5 (relative) on any frame.
 
-Options: ``--out DIR``, ``--demos ball,cube,tube``, ``--resolution WxH`` (default 480x270),
+Options: ``--out DIR``, ``--demos ball,cube,tube,arm``, ``--resolution WxH`` (default 480x270),
 ``--frame-step N`` (every N-th frame and the last only: a quick look), ``--update-readme`` (copies a contact sheet, a GIF and the plot of each demo to ``docs/`` and
 rewrites the README block between ``<!-- demos:start -->`` and ``<!-- demos:end -->``).
 """
@@ -86,6 +87,13 @@ DEMOS = {
                  "of quads, extruded into 6 layers; depth 3) whose middle a shape key squeezes. Left: the "
                  "cage's plain deformation (Correction None); middle: VP-FFD correcting along X, Y and Z; "
                  "right: VP-FFD correcting along Z only, so the squeezed volume goes into the length."),
+    "arm": Demo("arm", "Bent arm (Armature, Target: Bind)", "vpffd_demo_bent_arm",
+                "An arm ({n_verts:,} vertices) skinned to two bones, its weights blending over the "
+                "elbow, bends to 110 degrees and back. Left: the Armature alone, whose blended "
+                "skinning loses volume at the elbow; right: VP-FFD after the Armature, with a 4x4x4 "
+                "lattice around the elbow whose deformation fades out beyond it (Outside: Falloff), "
+                "correcting along X, Y and Z towards the volume the arm had at Bind, in its rest "
+                "pose (Target: Bind)."),
 }
 
 
@@ -177,8 +185,12 @@ def find_variants(scene):
         elif ob.vpffd.is_bound:
             axes = ob.vpffd.axes
             key, label, preserved = f"vpffd_{axes.lower()}", f"VP-FFD {axes}", True
+            if ob.vpffd.target == "BIND":
+                key, label = "vpffd", f"VP-FFD {axes}, Target: Bind"
         elif any(m.type == "LATTICE" for m in ob.modifiers):
             key, label, preserved = "plain", "Lattice modifier", False
+        elif any(m.type == "ARMATURE" for m in ob.modifiers):
+            key, label, preserved = "plain", "Armature alone", False
         else:
             continue
         mat = ob.active_material
@@ -188,7 +200,8 @@ def find_variants(scene):
 
 
 def build(demo):
-    """Add `demo` ("ball", "cube" or "tube") to the current scene with its operator; returns its variants."""
+    """Add `demo` ("ball", "cube", "tube" or "arm") to the current scene with its operator; returns
+    its variants."""
     import bpy
     operator = getattr(bpy.ops.object, DEMOS[demo].operator)
     result = operator(new_scene=False)
@@ -548,10 +561,10 @@ def readme_block(results, env):
                    f"module, headless), Workbench engine, {env['resolution']}, {env['frames']}; the run "
                    f"took {env['seconds']:.0f} s on {env['cpus']} CPU cores. Volumes are measured from the "
                    "meshes Blender evaluates (float32 coordinates, world space), independently of the "
-                   "solver. Red: plain FFD (Blender's Lattice modifier, or the cage without correction); "
-                   "blue: VP-FFD correcting along the lattice's X and Y (X, Y and Z for the tube); "
-                   "green: VP-FFD correcting along Z."), ""]
-    for key in ("ball", "cube", "tube"):
+                   "solver. Red: plain FFD (Blender's Lattice modifier, or the cage without correction) "
+                   "or the Armature alone; blue: VP-FFD correcting along the lattice's X and Y (X, Y and "
+                   "Z for the tube and the arm); green: VP-FFD correcting along Z."), ""]
+    for key in ("ball", "cube", "tube", "arm"):
         r = by[key]
         lines += [f"### {r.demo.title}", "", _wrap(r.demo.description.format(n_verts=r.n_verts)), "",
                   f"![{r.demo.title}: contact sheet](docs/{key}_contact_sheet.jpg)", "",
@@ -622,8 +635,8 @@ def update_readme(results, env, out_dirs, readme=README, docs=DOCS):
 def parse_args(argv):
     p = argparse.ArgumentParser(prog="./dev demo", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default=os.path.join(ROOT, "out"), help="output folder (default out/)")
-    p.add_argument("--demos", default="ball,cube,tube",
-                   help="comma-separated: ball, cube, tube (default all)")
+    p.add_argument("--demos", default="ball,cube,tube,arm",
+                   help="comma-separated: ball, cube, tube, arm (default all)")
     p.add_argument("--resolution", default="%dx%d" % DEFAULT_RESOLUTION,
                    help="render size WxH (default %(default)s)")
     p.add_argument("--frame-step", type=int, default=1, metavar="N",

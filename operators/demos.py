@@ -1,6 +1,7 @@
 """Demo scenes in the Add menu: the paper's bouncing ball and twisting cube (Hahmann et al.
-2011, Figures 1 and 6), each next to a plain Lattice modifier copy so the difference shows in one frame, and a tube
-in a cylindrical cage (MacCracken & Joy), next to the same cage without correction."""
+2011, Figures 1 and 6), each next to a plain Lattice modifier copy so the difference shows in one frame, a tube
+in a cylindrical cage (MacCracken & Joy), next to the same cage without correction, and an arm bent
+by an Armature, alone and with VP-FFD keeping the volume it had at Bind."""
 import math
 
 import bpy
@@ -13,6 +14,7 @@ from .text import report
 BALL_FRAMES = (1, 60)
 CUBE_FRAMES = (1, 60)
 TUBE_FRAMES = (1, 60)
+ARM_FRAMES = (1, 60)
 
 PLAIN_COLOUR = (0.85, 0.30, 0.25, 1.0)
 VPFFD_COLOUR = (0.20, 0.55, 0.90, 1.0)
@@ -327,6 +329,65 @@ def build_squeezed_tube(scene, depsgraph=None, progress=None):
     return {"plain": plain, "vpffd_xyz": xyz, "vpffd_z": z, "cages": [plain_cage, xyz_cage, z_cage]}
 
 
+# ------------------------------------------------------------------------------------ bent arm
+
+def _arm_rig(scene, name, x, colour):
+    """An arm (a capsule along Z, its elbow at the origin of the rig) skinned to two bones with
+    weights blending over the elbow; the upper bone bends to 110 degrees and back. Returns (arm,
+    rig)."""
+    half = 0.85
+    rig = bpy.data.objects.new(f"{name} Rig", bpy.data.armatures.new(f"{name} Rig"))
+    rig.location = (x, 0.0, 1.3)
+    scene.collection.objects.link(rig)
+    rig.data.display_type = "STICK"
+    layer = scene.view_layers[0]
+    layer.objects.active = rig      # bones are made in Edit Mode, which needs the rig active
+    with bpy.context.temp_override(active_object=rig, object=rig, selected_objects=[rig],
+                                   view_layer=layer, scene=scene):
+        bpy.ops.object.mode_set(mode="EDIT")
+        lower = rig.data.edit_bones.new("Lower")
+        lower.head, lower.tail = (0, 0, -half), (0, 0, 0)
+        upper = rig.data.edit_bones.new("Upper")
+        upper.head, upper.tail = (0, 0, 0), (0, 0, half)
+        upper.parent = lower
+        bpy.ops.object.mode_set(mode="OBJECT")
+    verts, tris = _capsule(0.2, 2 * half - 0.4)
+    arm = _mesh_object(scene, name, verts, tris, _material(f"VP-FFD Demo {name}", colour), smooth=True)
+    arm.location = rig.location
+    # Linear blend weights over the elbow: the skinning that loses volume when the joint bends.
+    t = np.clip((verts[:, 2] + 0.25) / 0.5, 0.0, 1.0)
+    for group, w in (("Lower", 1.0 - t), ("Upper", t)):
+        vg = arm.vertex_groups.new(name=group)
+        for value in np.unique(w):
+            vg.add(np.flatnonzero(w == value).tolist(), float(value), "REPLACE")
+    arm.modifiers.new("Armature", "ARMATURE").object = rig
+    pose = rig.pose.bones["Upper"]
+    pose.rotation_mode = "XYZ"
+    for f, angle in ((1, 0.0), (25, 110.0), (40, 110.0), (60, 0.0)):
+        _key(pose, "rotation_euler", f, (math.radians(angle), 0.0, 0.0))
+    return arm, rig
+
+
+def build_bent_arm(scene, depsgraph=None, progress=None):
+    """Two arms bent by their Armatures: the Armature alone (left), which loses volume at the
+    elbow, and VP-FFD after it (right): a lattice around the elbow, its deformation fading out
+    beyond it (Outside: Falloff), correcting along X, Y and Z towards the volume the arm had at
+    Bind, in the rest pose (Target: Bind). Returns {'plain': arm, 'vpffd': arm, 'lattices': [...]}."""
+    plain, _ = _arm_rig(scene, "Arm Armature Alone", -1.1, PLAIN_COLOUR)
+    ours, _ = _arm_rig(scene, "Arm VP-FFD Bind", 1.1, VPFFD_COLOUR)
+    lat = _lattice_object(scene, "Arm VP-FFD Bind Elbow Lattice", (4, 4, 4), (0.35, 0.35, 0.35),
+                          ours.location)
+    for text, x in (("Armature alone", -1.1), ("VP-FFD (volume at Bind)", 1.1)):
+        _label(scene, text, (x, 0.0, 2.75), size=0.2)
+    _stage(scene, camera_location=(0.0, -8.0, 1.6), camera_target=(0.0, 0.0, 1.45), frames=ARM_FRAMES,
+           ground_size=6.0)
+    scene.frame_set(scene.frame_start)
+    dg = depsgraph or scene.view_layers[0].depsgraph
+    _bind(ours, dg, progress=progress, lattice=lat, axes="XYZ", space="LATTICE", target="BIND",
+          outside="FALLOFF", falloff_distance=0.6)
+    return {"plain": plain, "vpffd": ours, "lattices": [lat]}
+
+
 # ----------------------------------------------------------------------------------- operators
 
 def _select_first_corrected(scene):
@@ -422,6 +483,15 @@ class OBJECT_OT_vpffd_demo_squeezed_tube(_DemoOperator, bpy.types.Operator):
     build = staticmethod(build_squeezed_tube)
 
 
+class OBJECT_OT_vpffd_demo_bent_arm(_DemoOperator, bpy.types.Operator):
+    """Add the bent-arm demo: an arm bent by an Armature, alone and with VP-FFD keeping its volume at Bind"""
+    bl_idname = "object.vpffd_demo_bent_arm"
+    bl_label = "Bent Arm (VP-FFD Demo)"
+    scene_name = "VP-FFD Bent Arm"
+    binds = 1
+    build = staticmethod(build_bent_arm)
+
+
 class VIEW3D_MT_vpffd_demos(bpy.types.Menu):
     bl_label = "VP-FFD Demos"
     bl_idname = "VIEW3D_MT_vpffd_demos"
@@ -430,6 +500,7 @@ class VIEW3D_MT_vpffd_demos(bpy.types.Menu):
         self.layout.operator(OBJECT_OT_vpffd_demo_bouncing_ball.bl_idname, icon="MESH_UVSPHERE")
         self.layout.operator(OBJECT_OT_vpffd_demo_twisting_cube.bl_idname, icon="MESH_CUBE")
         self.layout.operator(OBJECT_OT_vpffd_demo_squeezed_tube.bl_idname, icon="MESH_CYLINDER")
+        self.layout.operator(OBJECT_OT_vpffd_demo_bent_arm.bl_idname, icon="BONE_DATA")
 
 
 def _add_menu(self, context):
@@ -437,7 +508,7 @@ def _add_menu(self, context):
 
 
 classes = (OBJECT_OT_vpffd_demo_bouncing_ball, OBJECT_OT_vpffd_demo_twisting_cube,
-           OBJECT_OT_vpffd_demo_squeezed_tube, VIEW3D_MT_vpffd_demos)
+           OBJECT_OT_vpffd_demo_squeezed_tube, OBJECT_OT_vpffd_demo_bent_arm, VIEW3D_MT_vpffd_demos)
 
 
 def register():

@@ -219,6 +219,7 @@ class _Bound:
         self.last_binding = None  # the binding of the last solve (Auto uploads one used twice)
         self.backend = ("CPU", "")
         self.matrix = None      # object -> lattice space of the last solve
+        self.falloff_box = None  # world corners (8, 3) of the falloff's outer box, for the overlay
         self.costs = {}         # last solve's seconds per (path, vertices, options) for Auto
         self.settings = None
         self.deleted = None     # name of the lattice that the user deleted, for the panel
@@ -737,6 +738,13 @@ def _publish(obj, state, frame, result, t0):
     edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
     state.overlay = (meshio.transform(result.points, frame.lattice_matrix), edges)
     state.matrix = frame.inputs.matrix      # object -> lattice space of this solve
+    state.falloff_box = None
+    if isinstance(lattice, vp.Lattice) and frame.inputs.outside == "FALLOFF":
+        # Where the falloff ends: the lattice's box grown by the distance (in its sizes) per side.
+        grow = frame.inputs.falloff * (lattice.hi - lattice.lo)
+        lo, hi = lattice.lo - grow, lattice.hi + grow
+        corners = np.array([[(hi if k >> a & 1 else lo)[a] for a in range(3)] for k in range(8)])
+        state.falloff_box = meshio.transform(corners, frame.lattice_matrix)
     binding = result.binding
     backend, backend_reason = state.backend
     s = state.settings
@@ -799,6 +807,19 @@ def overlay_geometry(obj):
         return None     # the mesh shows no correction now: drawing the last one would be false
     label = f"{info.volume_percent:.3f}% volume" if info.volume_percent is not None else ""
     return state.overlay + (label,)
+
+
+#: The 12 edges of a box whose corner k sits at (k & 1, k >> 1 & 1, k >> 2 & 1).
+BOX_EDGES = np.array([(k, k | 1 << a) for k in range(8) for a in range(3) if not k >> a & 1])
+
+
+def falloff_geometry(obj):
+    """(corners in world space (8, 3), edges (12, 2)) of the box where the falloff of the last
+    solve ends, or None (no falloff, or nothing shown now)."""
+    state = _cache.get(obj.session_uid)
+    if overlay_geometry(obj) is None or getattr(state, "falloff_box", None) is None:
+        return None
+    return state.falloff_box, BOX_EDGES
 
 
 def check_folds(obj, depsgraph):

@@ -1,5 +1,6 @@
-"""Viewport overlay: the corrected lattice or cage (the control points the solver used) and the volume
-percentage next to each bound object whose "Show Corrected Lattice" is on.
+"""Viewport overlay: the corrected lattice or cage (the control points the solver used), the box
+where a lattice's falloff ends (Outside: Falloff), and the volume percentage next to each bound
+object whose "Show Corrected Lattice" is on.
 
 Only the draw callbacks touch `gpu`/`blf`, and only when Blender draws a 3D viewport; nothing runs
 at import or registration, and nothing is drawn in background mode.
@@ -14,6 +15,7 @@ from . import engine
 log = logging.getLogger(__name__)
 
 LATTICE_COLOUR = (0.15, 0.85, 0.95, 0.9)
+FALLOFF_COLOUR = (1.0, 0.6, 0.2, 0.6)
 TEXT_COLOUR = (1.0, 1.0, 1.0, 0.95)
 
 _handles = []
@@ -42,10 +44,14 @@ def _draw_lattices():
         gpu.state.blend_set("ALPHA")
         gpu.state.line_width_set(1.5)
         gpu.state.point_size_set(5.0)
-        for _, (points, edges, _) in _visible(context):
+        for ob, (points, edges, _) in _visible(context):
             shader.uniform_float("color", LATTICE_COLOUR)
             batch_for_shader(shader, "LINES", {"pos": lines(points, edges).astype(np.float32)}).draw(shader)
             batch_for_shader(shader, "POINTS", {"pos": points.astype(np.float32)}).draw(shader)
+            box = engine.falloff_geometry(ob)
+            if box is not None:
+                shader.uniform_float("color", FALLOFF_COLOUR)
+                batch_for_shader(shader, "LINES", {"pos": lines(*box).astype(np.float32)}).draw(shader)
         gpu.state.blend_set("NONE")
     except Exception as exc:  # drawing must never raise into Blender
         log.error("overlay: %s", exc)

@@ -80,6 +80,12 @@ def test_falloff_keeps_the_volume_and_leaves_vertices_beyond_it_in_place(ext):
     info = _engine(ext).status(ob)
     assert info.falloff == fading.sum() and info.beyond == beyond.sum(), info
     assert "fades out over" in _engine(ext).outside_message(info, False)
+    # The overlay's falloff box: the lattice's box grown by the distance, in world space.
+    ob.vpffd.show_overlay = True
+    corners, edges = _engine(ext).falloff_geometry(ob)
+    np.testing.assert_allclose(np.sort(np.unique(corners.round(9), axis=0), 0)[[0, -1]],
+                               [[-0.75] * 3, [0.75] * 3], atol=1e-6)
+    assert len(edges) == 12 and all(np.count_nonzero(corners[a] != corners[b]) == 1 for a, b in edges)
     # Follow moves the far vertices with the clamped boundary, as Blender's modifier does.
     ob.vpffd.outside = "FOLLOW"
     bpy.context.view_layer.update()

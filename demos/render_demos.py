@@ -502,7 +502,7 @@ def write_plot(result, out_path):
                      **{**style, "lw": style["lw"] / 2})
         else:
             ax.plot(result.frames, 100 * result.ratios[:, j], color=v.colour, lw=2,
-                    label=v.label + " (plain FFD)")
+                    label=v.label + ("" if v.label == "Armature alone" else " (plain FFD)"))
     ax.axhline(100, color="0.5", lw=0.8, ls=":")
     ax.set_ylabel("volume, % of rest")
     ax.set_title(f"{result.demo.title}: volume over time")

@@ -364,7 +364,7 @@ def _arm_rig(scene, name, x, colour):
     pose = rig.pose.bones["Upper"]
     pose.rotation_mode = "XYZ"
     for f, angle in ((1, 0.0), (25, 110.0), (40, 110.0), (60, 0.0)):
-        _key(pose, "rotation_euler", f, (math.radians(angle), 0.0, 0.0))
+        _key(pose, "rotation_euler", f, (0.0, 0.0, math.radians(angle)))   # bone Z: sideways in the camera
     return arm, rig
 
 
@@ -378,8 +378,8 @@ def build_bent_arm(scene, depsgraph=None, progress=None):
     lat = _lattice_object(scene, "Arm VP-FFD Bind Elbow Lattice", (4, 4, 4), (0.35, 0.35, 0.35),
                           ours.location)
     for text, x in (("Armature alone", -1.1), ("VP-FFD (volume at Bind)", 1.1)):
-        _label(scene, text, (x, 0.0, 2.75), size=0.2)
-    _stage(scene, camera_location=(0.0, -8.0, 1.6), camera_target=(0.0, 0.0, 1.45), frames=ARM_FRAMES,
+        _label(scene, text, (x, 0.0, 2.55), size=0.18)
+    _stage(scene, camera_location=(0.0, -5.6, 1.5), camera_target=(0.0, 0.0, 1.5), frames=ARM_FRAMES,
            ground_size=6.0)
     scene.frame_set(scene.frame_start)
     dg = depsgraph or scene.view_layers[0].depsgraph

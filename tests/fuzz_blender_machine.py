@@ -39,6 +39,9 @@ SETTINGS = st.fixed_dictionaries({}, optional={
     "show_overlay": st.booleans(),
     "backend": st.sampled_from(["AUTO", "CPU", "NUMPY", "GPU"]),
     "use_fold_attribute": st.booleans(),
+    "outside": st.sampled_from(["FOLLOW", "FALLOFF", "INSIDE"]),
+    "falloff_distance": st.sampled_from([0.5, 0.001, 0.2, 3.0]),
+    "target": st.sampled_from(["INPUT", "BIND"]),
 })
 # Settings that bind (most of the time): what a sequence starts from.
 SANE_SETTINGS = st.fixed_dictionaries({
@@ -746,7 +749,11 @@ class BlenderFuzz(RuleBasedStateMachine):
         if not (np.isfinite(v_rest) and np.isfinite(v_now)) or v_rest == 0:
             return
         # The panel gives sizes (a lattice that mirrors space turns the volume's sign with it).
-        reported = info["volume_percent"] / 100.0 * abs(v_rest) * (1.0 if v_now >= 0 else -1.0)
+        reference = abs(v_rest)
+        if info.get("target_from") == "bind":
+            # Percentages of the volume at Bind; the panel gives the input's share of it too.
+            reference = abs(v_rest) / (info["input_percent"] / 100.0)
+        reported = info["volume_percent"] / 100.0 * reference * (1.0 if v_now >= 0 else -1.0)
         scale = max(abs(v_rest), abs(v_now))
         # The evaluated coordinates are float32: each is off by up to eps * its magnitude (in
         # object space), which moves the volume by up to that times the surface area.

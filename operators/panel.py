@@ -115,7 +115,6 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
 
 class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
     bl_label = "Outside"
-    bl_options = {"DEFAULT_CLOSED"}
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:

@@ -500,6 +500,32 @@ def session():
           and not sphere.vpffd.is_bound and not any(m.type == "NODES" for m in sphere.modifiers),
           (bpy.data.objects.get(fitted_name), sphere and sphere.vpffd.is_bound))
 
+    # Add > VP-FFD Demos > Bent Arm: VP-FFD after an Armature (Target: Bind, a falloff lattice
+    # around the elbow) gives back the volume the arm had at Bind; the Armature alone loses it.
+    op("object.vpffd_demo_bent_arm")
+    show_modifier_tab()
+    arm = bpy.context.window_manager.windows[0].view_layer.objects.active
+    check("bent-arm demo leaves the VP-FFD arm active, Target Bind, Outside Falloff",
+          arm is not None and arm.vpffd.is_bound and arm.vpffd.target == "BIND"
+          and arm.vpffd.outside == "FALLOFF", getattr(arm, "name", None))
+    scene = bpy.context.window_manager.windows[0].scene
+    scene.frame_set(30)                       # the deepest bend
+    yield 1.0
+    r, _ = ratio(arm)                         # bound in the rest pose: the mesh's own volume
+    alone = next(ob for ob in scene.objects if ob.type == "MESH" and ob.name.startswith("Arm Armature"))
+    r_alone = volume(*evaluated(alone)) / volume(*mesh_arrays(alone.data))
+    info = eng.status(arm)
+    check("bent arm: VP-FFD keeps the volume at Bind, the Armature alone loses it",
+          abs(r - 1) <= VOLUME_TOL and r_alone < 0.95 and info.target_from == "bind",
+          (r, r_alone, info.target_from))
+    check("bent arm: the panel's figure is the measured share of the volume at Bind",
+          info.volume_percent is not None and abs(info.volume_percent / 100 - abs(r)) <= 1e-6
+          and abs(info.input_percent / 100 - r_alone) <= 1e-5, (info.volume_percent, info.input_percent, r, r_alone))
+    arm.vpffd.show_overlay = True             # the corrected lattice and where the falloff ends
+    yield 0.5
+    check("bent arm: the overlay draws the falloff's box", eng.falloff_geometry(arm) is not None)
+    yield from screenshot("arm")
+
 
 def main():
     gen = session()

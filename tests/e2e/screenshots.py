@@ -1,6 +1,6 @@
 """`./dev screenshots`: run the window session (gui_session.py) and keep its screenshots of the
 real Blender window in docs/ (window_panel.png, window_overlay.png, window_editmode.png,
-window_bake.png, window_fit.png), for the README. Exits non-zero when a check of the session fails."""
+window_bake.png, window_fit.png, window_arm.png), for the README. Exits non-zero when a check of the session fails."""
 import os
 import shutil
 import sys

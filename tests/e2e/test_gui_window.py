@@ -61,7 +61,7 @@ def test_screenshots_show_the_window(session):
     import numpy as np
     from PIL import Image
     _, shots = session
-    assert set(shots) == {"panel", "overlay", "editmode", "bake", "fit"}
+    assert set(shots) == {"panel", "overlay", "editmode", "bake", "fit", "arm"}
     for name, path in shots.items():
         img = np.asarray(Image.open(path))
         assert img.shape[:2] == (gw.SCREEN[1], gw.SCREEN[0]), name

@@ -428,10 +428,9 @@ def test_a_geometry_nodes_modifier_that_drops_point_clouds_is_reported(ext):
     np.testing.assert_array_equal(_evaluated(ob)[0], _evaluated(source)[0])   # undeformed, not stale
 
 
-def test_a_library_override_of_a_linked_character_binds_and_deforms(ext, tmp_path):
-    """A rigged character linked from another file with a library override: its mesh stays linked
-    (nothing of it can be written), and VP-FFD binds, deforms like a Lattice modifier, keeps the
-    volume, and does so again after saving and reopening the shot."""
+def _overridden_character(tmp_path):
+    """A rigged character ("Body" bent by "Rig") saved in a library file, linked into an empty
+    scene with a library override; returns the override's mesh object (its mesh stays linked)."""
     library = str(tmp_path / "character.blend")
     body = _object("Body", 3)
     _before(body, "armature")
@@ -454,6 +453,15 @@ def test_a_library_override_of_a_linked_character_binds_and_deforms(ext, tmp_pat
         scene.collection.children.unlink(linked)
     body = next(ob for ob in override.all_objects if ob.type == "MESH")
     assert body.override_library is not None and body.data.library is not None
+    return body
+
+
+def test_a_library_override_of_a_linked_character_binds_and_deforms(ext, tmp_path):
+    """A rigged character linked from another file with a library override: its mesh stays linked
+    (nothing of it can be written), and VP-FFD binds, deforms like a Lattice modifier, keeps the
+    volume, and does so again after saving and reopening the shot."""
+    body = _overridden_character(tmp_path)
+    override = body.users_collection[0]
     lat = _lattice()
     settings = dict(lattice=lat, axes="XYZ")
     assert _bind(body, **settings) == {"FINISHED"}
@@ -483,3 +491,27 @@ def test_a_library_override_of_a_linked_character_binds_and_deforms(ext, tmp_pat
     twin = bpy.data.objects["Twin_armature"]
     assert body.vpffd.is_bound and body.vpffd.lattice is not None and body.data.library is not None
     check(17, body, twin)
+
+
+def test_a_library_override_keeps_the_volume_at_bind(ext, tmp_path):
+    """Target: Bind on a linked character's override: bound in the rest pose, the bent frames
+    get the rest volume back, also after saving and reopening the shot (the volume at Bind is
+    kept with the override, its mesh still linked)."""
+    body = _overridden_character(tmp_path)
+    rest = _volume(body)                       # frame 1: the rest pose reaches the slot
+    assert _bind(body, lattice=_lattice(), axes="XYZ", target="BIND") == {"FINISHED"}
+
+    def check(f, body):
+        bpy.context.scene.frame_set(f)
+        info = _engine(ext).status(body)
+        assert info.error is None and info.target_from == "bind", info
+        assert abs(info.input_percent - 100) > 0.1, info    # the bend changed the volume
+        assert abs(_volume(body) / rest - 1) <= VOLUME_TOL, f"frame {f}"
+
+    check(14, body)
+    shot = str(tmp_path / "shot.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=shot)
+    bpy.ops.wm.open_mainfile(filepath=shot)
+    body = bpy.data.objects["Body"]
+    assert body.vpffd.target == "BIND" and body.data.library is not None
+    check(17, body)

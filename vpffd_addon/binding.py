@@ -238,7 +238,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.block_size = bs
     runs = (order, run_start, run_len, first_block)
     if kernels:
-        faces = _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels)
+        faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels)
     else:
         _numpy_blocks(b, taps, s, runs, n_blocks)
         faces = None
@@ -262,9 +262,10 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     return b
 
 
-def _lattice_taps(lattice, verts, kernels):
+def _lattice_taps(lattice, verts, kernels, threads=True):
     """[(first (V,), w (V, K))] of the three axes (`bases.axis_taps`), by the compiled kernel when
-    `kernels` are given (every axis then has four taps)."""
+    `kernels` are given (every axis then has four taps); on the worker threads for a big mesh
+    unless `threads` is False (when called from one of them)."""
     cols = np.ascontiguousarray(verts.T)
     V = len(verts)
 
@@ -278,7 +279,9 @@ def _lattice_taps(lattice, verts, kernels):
         return first, w
     # The three axes are independent and NumPy and the kernels release the GIL: big meshes use
     # the worker threads.
-    return parallel.run(taps_of, [0, 1, 2]) if V >= parallel.MIN_VERTS_PER_PART else [taps_of(a) for a in range(3)]
+    if threads and V >= parallel.MIN_VERTS_PER_PART:
+        return parallel.run(taps_of, [0, 1, 2])
+    return [taps_of(a) for a in range(3)]
 
 
 def _numpy_blocks(b, taps, s, runs, n_blocks):
@@ -311,10 +314,11 @@ def _numpy_blocks(b, taps, s, runs, n_blocks):
     b.slot_influence[slot] = s
 
 
-def _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels):
+def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
     """`_numpy_blocks` and `slot_faces` by the compiled kernels: the slots first, then the block
     weights beside the faces (two worker threads for a big mesh; the kernels release the GIL).
-    Returns `slot_faces`'s result."""
+    The weights come from the taps of the vertices taken again in sorted order (the same values,
+    read in order instead of gathered). Returns `slot_faces`'s result."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
     b.slot = np.empty(b.n_verts, np.int64)
     kernels["slots"](*runs, bs, b.slot)
@@ -322,7 +326,9 @@ def _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels):
     b.slot_influence = np.zeros(n_slots, dt)
 
     def weights():
-        kernels["block_weights"](*runs, bs, taps[0][1], taps[1][1], taps[2][1], s,
+        order = runs[0]
+        taps = _lattice_taps(lattice, verts[order], kernels, threads=False)
+        kernels["block_weights"](*runs[1:], bs, taps[0][1], taps[1][1], taps[2][1], s[order],
                                  b.wuv, b.ww, b.slot_influence, np.empty(8, dt))
     jobs = [lambda: slot_faces(b, rel, n_slots, kernels), weights]
     if b.n_verts >= parallel.MIN_VERTS_PER_PART:

@@ -85,9 +85,10 @@ def define(njit):
                 pos += 1
 
     @njit
-    def block_weights(order, run_start, run_len, first_block, bs, wu, wv, ww, s,
-                      wuv, wws, influence, cast):
-        # The weights in the (n_blocks, K, bs) layout of the slots `slots` gives: wuv = Wv * Wu with both factors first rounded to the binding's
+    def block_weights(run_start, run_len, first_block, bs, wu, wv, ww, s, wuv, wws, influence, cast):
+        # The weights in the (n_blocks, K, bs) layout of the slots `slots` gives, from the taps
+        # wu, wv, ww (V, K) and influences s (V,) of the vertices in sorted order (read in order:
+        # gathering them through the sort's permutation cost twice as much): wuv = Wv * Wu with both factors first rounded to the binding's
         # precision (through `cast`, 8 values of it), as NumPy's per-block gathers and product do;
         # ww = (w * s) in float64, then rounded.
         Ku = wu.shape[1]
@@ -100,7 +101,7 @@ def define(njit):
                 if pos == bs:
                     blk += 1
                     pos = 0
-                v = order[run_start[r] + j]
+                v = run_start[r] + j
                 for k in range(Ku):
                     cast[k] = wu[v, k]
                 for k in range(Kv):

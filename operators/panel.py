@@ -4,7 +4,7 @@ Bake and Status, with split properties and no animation decorators."""
 import bpy
 
 from . import bake, cage, engine, modifier
-from .status_line import LIVE_SOLVE_PATH, headline
+from .status_line import LIVE_SOLVE_PATH, headline, reference_words
 from .text import count, lines, sentence
 
 
@@ -242,9 +242,7 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
         if info.editing:
             message(layout, context, "Edit Mode: solved live from the mesh as edited", icon="EDITMODE_HLT")
         if info.volume_percent is not None:
-            what = ("its volume at Bind" if info.target_from == "bind" else
-                    "the mesh as edited" if info.editing else "its input")
-            message(layout, context, f"volume {info.volume_percent:.4f}% of {what} "
+            message(layout, context, f"volume {info.volume_percent:.4f}% of {reference_words(info)} "
                                      f"(plain lattice: {info.plain_percent:.4f}%)", icon="CHECKMARK")
             if info.input_percent is not None:
                 message(layout, context, f"its input: {info.input_percent:.4f}% of the volume at Bind",
@@ -270,6 +268,6 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
             message(layout, context, text, icon="ERROR")
 
 
-classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction, OBJECT_PT_vpffd_pins,
-           OBJECT_PT_vpffd_folds, OBJECT_PT_vpffd_overlay, OBJECT_PT_vpffd_bake,
+classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction,
+           OBJECT_PT_vpffd_pins, OBJECT_PT_vpffd_folds, OBJECT_PT_vpffd_overlay, OBJECT_PT_vpffd_bake,
            OBJECT_PT_vpffd_status)

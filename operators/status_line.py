@@ -5,6 +5,13 @@ icon. The Status sub-panel gives the details (timings, warnings, figures of the 
 LIVE_SOLVE_PATH = "Bake > Use Live Solve"
 
 
+def reference_words(info):
+    """What the volume figures of `info` (an `engine.Status`) are percentages of, in words."""
+    if info.target_from == "bind":
+        return "its volume at Bind"
+    return "the mesh as edited" if info.editing else "its input"
+
+
 def headline(info, bound, using_cache):
     """(text, icon name) for an object with `engine.Status` `info`; `bound`: whether it is bound;
     `using_cache`: whether a baked cache plays instead of the live solve."""
@@ -22,9 +29,7 @@ def headline(info, bound, using_cache):
         if info.seconds is not None:
             return "deforming as the Lattice modifier does (Correction: None)", "CHECKMARK"
         return "waiting for the next update", "TIME"
-    what = ("its volume at Bind" if info.target_from == "bind" else
-            "the mesh as edited" if info.editing else "its input")
-    text = f"volume {info.volume_percent:.3f}% of {what}"
+    text = f"volume {info.volume_percent:.3f}% of {reference_words(info)}"
     if info.warnings:
         return text + f" ({len(info.warnings)} warning{'s' if len(info.warnings) > 1 else ''} "\
                       "in Status)", "ERROR"

@@ -320,15 +320,16 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
     The weights come from the taps of the vertices taken again in sorted order (the same values,
     read in order instead of gathered). Returns `slot_faces`'s result."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
-    b.slot = np.empty(b.n_verts, np.int64)
-    kernels["slots"](*runs, bs, b.slot)
+    b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
+    kernels["slots"](*runs, bs, b.slot, sorted_slot)
     b.wuv, b.ww = np.zeros((n_blocks, 16, bs), dt), np.zeros((n_blocks, 4, bs), dt)
     b.slot_influence = np.zeros(n_slots, dt)
 
     def weights():
         order = runs[0]
         taps = _lattice_taps(lattice, verts[order], kernels, threads=False)
-        kernels["block_weights"](*runs[1:], bs, taps[0][1], taps[1][1], taps[2][1], s[order],
+        shift = bs.bit_length() - 1                                # block sizes are powers of two
+        kernels["block_weights"](sorted_slot, shift, taps[0][1], taps[1][1], taps[2][1], s[order],
                                  b.wuv, b.ww, b.slot_influence, np.empty(8, dt))
     jobs = [lambda: slot_faces(b, rel, n_slots, kernels), weights]
     if b.n_verts >= parallel.MIN_VERTS_PER_PART:
@@ -391,7 +392,8 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
 def slot_faces(b, rel, n_slots, kernels=None):
     """The rest coordinates in slot order and the faces, once `b.slot` (V,) is known: sets b.x0
     and b.corner_parts, and returns (face_vol (F,), sums (2, n_islands)): the faces' float64 volume
-    terms in their stored order, and per island their sum and the sum of their absolute values. By the compiled layout kernels when `kernels` are given."""
+    terms in their stored order, and per island their sum and the sum of their absolute values.
+    By the compiled layout kernels when `kernels` are given."""
     slot, V = b.slot, b.n_verts
     # Rest coordinates in slot order: float64 for the faces' volume terms below, and in the
     # binding's precision as x0 (the same rounding as storing them straight into it).

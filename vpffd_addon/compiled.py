@@ -6,8 +6,8 @@ stays the reference and the fallback.
 
 Nothing compiles on import: `load()` compiles the kernels, or loads them from numba's cache, and
 from then on `default_steps(binding)` hands solves the compiled steps and `bind_kernels` hands
-binds the layout kernels. numba holds the GIL while it
-compiles (seconds), so an interactive host calls `load()` where a pause does not matter.
+binds the layout kernels. numba holds the GIL while it compiles (seconds), so an interactive host
+calls `load()` where a pause does not matter.
 
 Each kernel call is serial and sums in a fixed order; calls run on the fixed parts of
 `parallel.py`, as NumPy's kernels do, so a result never depends on what ran before (chunked renders

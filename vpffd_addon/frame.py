@@ -205,7 +205,7 @@ class Pipeline:
         binding, rebound = self._embed(inp, verts, influence)
         warnings = []
         solution = None
-        reference = binding.rest_volume
+        reference, target_given = binding.rest_volume, False
         if inp.correct:
             options = dict(axes=inp.axes, directions=inp.directions, volume_scale=inp.volume_scale,
                            preserve_volume=bool(inp.axes or inp.directions is not None),
@@ -215,7 +215,7 @@ class Pipeline:
                 if target.shape == ((binding.n_islands,) if inp.islands else (1,)):
                     # Volumes in lattice space are the object's times det(M) (M: object -> lattice).
                     options["target_volumes"] = target * float(det3(M[:3, :3]))
-                    reference = float(options["target_volumes"].sum())
+                    reference, target_given = float(options["target_volumes"].sum()), True
                 else:
                     warnings.append(f"the target holds {target.size} island volume(s), but "
                                     f"{binding.n_islands} island(s) reach VP-FFD: keeping their own "
@@ -240,7 +240,7 @@ class Pipeline:
                            volume=volume, plain_volume=plain, warnings=tuple(warnings),
                            binding=binding, rebound=rebound, solution=solution,
                            outside=int(binding.n_outside), falloff=falloff, beyond=beyond, still=still,
-                           reference_volume=reference, target_given=reference is not binding.rest_volume)
+                           reference_volume=reference, target_given=target_given)
 
     @staticmethod
     def folds(result):

@@ -4,7 +4,7 @@ and the slot-ordered coordinates, faces and face volumes (docs/performance.md, "
 A mesh that moves through the lattice is embedded anew on every frame, so these passes are
 per-frame work. Each kernel is one serial loop that writes its output in place and computes every
 value with the same operations, in the same order and precision, as the NumPy code in
-`bases.axis_taps`, `binding.bind_lattice`, `binding.finish` and `volume.face_volumes`: a binding
+`bases.axis_taps`, `binding.bind_lattice`, `binding.slot_faces` and `volume.face_volumes`: a binding
 made with them is bit for bit the one NumPy makes (the tests compare every array).
 
 `define(njit)` returns the kernels by name; `compiled.py` compiles them with its own options.
@@ -71,9 +71,10 @@ def define(njit):
                 w[v, 3] = w3
 
     @njit
-    def slots(order, run_start, run_len, first_block, bs, slot):
-        # The slot of every vertex: runs cut into blocks of bs, in sorted order. Counters, not
-        # j // bs and j % bs: an integer division per vertex would cost more than the rest.
+    def slots(order, run_start, run_len, first_block, bs, slot, sorted_slot):
+        # The slot of every vertex (slot, by vertex) and of every sorted position (sorted_slot):
+        # runs cut into blocks of bs. Counters, not j // bs and j % bs: an integer division per
+        # vertex would cost more than the rest.
         for r in range(run_start.shape[0]):
             blk = first_block[r]
             pos = 0
@@ -81,38 +82,36 @@ def define(njit):
                 if pos == bs:
                     blk += 1
                     pos = 0
-                slot[order[run_start[r] + j]] = blk * bs + pos
+                i = run_start[r] + j
+                sorted_slot[i] = slot[order[i]] = blk * bs + pos
                 pos += 1
 
     @njit
-    def block_weights(run_start, run_len, first_block, bs, wu, wv, ww, s, wuv, wws, influence, cast):
-        # The weights in the (n_blocks, K, bs) layout of the slots `slots` gives, from the taps
-        # wu, wv, ww (V, K) and influences s (V,) of the vertices in sorted order (read in order:
-        # gathering them through the sort's permutation cost twice as much): wuv = Wv * Wu with both factors first rounded to the binding's
-        # precision (through `cast`, 8 values of it), as NumPy's per-block gathers and product do;
+    def block_weights(sorted_slot, shift, wu, wv, ww, s, wuv, wws, influence, cast):
+        # The weights in the (n_blocks, K, 2**shift) layout of the slots `slots` gives
+        # (sorted_slot), from the taps wu, wv, ww (V, K) and influences s (V,) of the vertices in
+        # sorted order (read in order: gathering them through the sort's permutation cost twice
+        # as much): wuv = Wv * Wu with both factors first rounded to the binding's precision
+        # (through `cast`, 8 values of it), as NumPy's per-block gathers and product do;
         # ww = (w * s) in float64, then rounded.
         Ku = wu.shape[1]
         Kv = wv.shape[1]
         Kw = ww.shape[1]
-        for r in range(run_start.shape[0]):
-            blk = first_block[r]
-            pos = 0
-            for j in range(run_len[r]):
-                if pos == bs:
-                    blk += 1
-                    pos = 0
-                v = run_start[r] + j
-                for k in range(Ku):
-                    cast[k] = wu[v, k]
-                for k in range(Kv):
-                    cast[4 + k] = wv[v, k]
-                for kv in range(Kv):
-                    for ku in range(Ku):
-                        wuv[blk, kv * Ku + ku, pos] = cast[4 + kv] * cast[ku]
-                for k in range(Kw):
-                    wws[blk, k, pos] = ww[v, k] * s[v]
-                influence[blk * bs + pos] = s[v]
-                pos += 1
+        mask = (1 << shift) - 1
+        for v in range(sorted_slot.shape[0]):
+            sl = sorted_slot[v]
+            blk = sl >> shift
+            pos = sl & mask
+            for k in range(Ku):
+                cast[k] = wu[v, k]
+            for k in range(Kv):
+                cast[4 + k] = wv[v, k]
+            for kv in range(Kv):
+                for ku in range(Ku):
+                    wuv[blk, kv * Ku + ku, pos] = cast[4 + kv] * cast[ku]
+            for k in range(Kw):
+                wws[blk, k, pos] = ww[v, k] * s[v]
+            influence[sl] = s[v]
 
     @njit
     def slot_coords(slot, rel, coords, x0):

@@ -19,6 +19,8 @@ from ..vpffd_addon import linalg3
 from ..vpffd_addon.steps import NumpySteps
 from . import cage, compiled_backend, gpu_backend, meshio, modifier
 from .cache_modifier import find_cache, using_cache
+from .status_line import open_mesh_words
+from .text import percent
 
 log = logging.getLogger(__name__)
 
@@ -56,12 +58,14 @@ class Status:
     backend_reason: str = ""
     n_verts: Optional[int] = None          #: points that reached the slot
     closed: Optional[bool] = None          #: whether their faces close a volume
+    encloses_nothing: bool = False         #: open, with no volume about the lattice's centre
+    mirrored: bool = False                 #: the lattice turns the volume's sign (a mirror)
     folds: Optional[int] = None            #: vertices where the lattice folds space
     rebound: bool = False                  #: whether this update embedded the input anew
     outside: Optional[int] = None          #: points outside the lattice's box or cage's region
     outside_follow: bool = True            #: whether those follow the boundary (else they stay)
     outside_mode: str = "FOLLOW"           #: the lattice's Outside setting as solved
-    falloff: Optional[int] = None          #: points the falloff moves partly
+    falloff: Optional[int] = None          #: points outside that the falloff moves partly
     still: Optional[int] = None            #: points with no influence (left exactly in place)
     beyond: Optional[int] = None           #: points the Outside setting keeps still
     target_from: Optional[str] = None      #: "bind" when the volume at Bind is the reference
@@ -220,6 +224,7 @@ class _Bound:
         self.backend = ("CPU", "")
         self.matrix = None      # object -> lattice space of the last solve
         self.falloff_box = None  # world corners (8, 3) of the falloff's outer box, for the overlay
+        self.orientation = 1.0  # -1 while the lattice mirrors space (folds count against it)
         self.costs = {}         # last solve's seconds per (path, vertices, options) for Auto
         self.settings = None
         self.deleted = None     # name of the lattice that the user deleted, for the panel
@@ -276,8 +281,8 @@ class _Bound:
         gpu, cpu = self.costs.get(("GPU",) + key), self.costs.get(("CPU",) + key)
         if gpu is None or cpu is None or gpu <= cpu:
             return True, why
-        return False, (f"Auto: this mesh solved in {1e3 * cpu:.1f} ms on the CPU against "
-                       f"{1e3 * gpu:.1f} ms on the GPU")
+        return False, (f"Auto chose the CPU: it solved this mesh in {1e3 * cpu:.1f} ms, the GPU "
+                       f"in {1e3 * gpu:.1f} ms")
 
 
 def _directions(s, lat_matrix):
@@ -717,7 +722,24 @@ def _evaluate(state, frame):
     if state.settings.backend != "NUMPY":
         compiled_backend.start()    # once per session; NumPy solves until the kernels are ready
     state.backend = ("CPU", "")
-    return state.pipeline.evaluate(frame.inputs)
+    result = state.pipeline.evaluate(frame.inputs)
+    if frame.inputs.correct and encloses_nothing(result):
+        # An open surface with no volume about the lattice's centre (a plane through it) has no
+        # volume to keep: aiming at zero would bend it into another shape. It deforms as the
+        # Lattice modifier does; pins still hold.
+        plain = dataclasses.replace(frame.inputs, axes="", directions=None,
+                                    correct=bool(frame.inputs.pins))
+        state.backend = ("CPU", "")
+        result = state.pipeline.evaluate(plain)
+    return result
+
+
+def encloses_nothing(result):
+    """Whether the frame's input is an open surface whose volume about the lattice's centre is
+    zero to within the rounding of its terms: there is no volume to keep."""
+    b = result.binding
+    return (b is not None and not b.is_closed and result.reference_volume is not None
+            and abs(result.reference_volume) <= float(np.sum(b.rest_volume_noise)))
 
 
 def _publish(obj, state, frame, result, t0):
@@ -749,15 +771,16 @@ def _publish(obj, state, frame, result, t0):
     backend, backend_reason = state.backend
     s = state.settings
     info = dict(error=None, seconds=seconds, core_seconds=core_seconds,
-                warnings=tuple(frame.warnings) + tuple(result.warnings), backend=backend,
+                warnings=tuple(frame.warnings) + tuple(result.warnings) + _lattice_notes(lattice),
+                backend=backend,
                 backend_reason=backend_reason, n_verts=len(X), folds=None,
                 closed=None if binding is None else binding.is_closed,
                 input_volume=result.input_volume, rebound=result.rebound, outside=result.outside,
                 outside_follow=(frame.inputs.outside == "FOLLOW" if isinstance(lattice, vp.Lattice)
                                 else s.cage_outside == "FOLLOW"),
-                outside_mode=frame.inputs.outside, falloff=result.falloff, still=result.still,
-                beyond=result.beyond,
-                editing=frame.editing)
+                outside_mode=frame.inputs.outside, falloff=_fading(frame.inputs, result),
+                still=result.still, beyond=result.beyond, editing=frame.editing,
+                encloses_nothing=encloses_nothing(result))
     if backend == "CPU":
         compiled = s.backend != "NUMPY" and vp.compiled.ready() and isinstance(lattice, vp.Lattice)
         info["kernels"] = "compiled" if compiled else "NumPy"
@@ -766,6 +789,9 @@ def _publish(obj, state, frame, result, t0):
                                    else "cages solve with NumPy" if isinstance(lattice, vp.Cage)
                                    else compiled_backend.status()[1])
     reference = result.reference_volume
+    # A mirror turns every vertex inside out alike: folds are the vertices turned against it.
+    mirrored = bool(reference and result.plain_volume and result.plain_volume / reference < 0)
+    info["mirrored"], state.orientation = mirrored, -1.0 if mirrored else 1.0
     if reference:
         # Sizes: a lattice that mirrors space turns the volume's sign with the shape.
         info["volume_percent"] = 100.0 * abs(result.volume / reference)
@@ -777,9 +803,9 @@ def _publish(obj, state, frame, result, t0):
         if s.use_fold_attribute and frame.faces_from == "mesh" and obj.data.library is None:
             det = vp.jacobian_det(binding, result.points)
             _float_attribute(obj.data, JACOBIAN_ATTRIBUTE, det)
-            info["folds"] = int((det <= 0).sum())
+            info["folds"] = int((det * state.orientation <= 0).sum())
         elif binding.n_verts <= FOLD_CHECK_MAX_VERTS:
-            info["folds"] = count_folds(binding, result.points)
+            info["folds"] = count_folds(binding, result.points, state.orientation)
     _set_stats(obj, **info)
 
 
@@ -805,7 +831,7 @@ def overlay_geometry(obj):
     info = status(obj)
     if info.error or info.paused or info.switched_off:
         return None     # the mesh shows no correction now: drawing the last one would be false
-    label = f"{info.volume_percent:.3f}% volume" if info.volume_percent is not None else ""
+    label = f"{percent(info.volume_percent)} volume" if info.volume_percent is not None else ""
     return state.overlay + (label,)
 
 
@@ -830,13 +856,30 @@ def check_folds(obj, depsgraph):
     if state is None or state.result is None or state.result.binding is None:
         return None
     info = status(obj)
-    info.folds = count_folds(state.result.binding, state.result.points)
+    info.folds = count_folds(state.result.binding, state.result.points, state.orientation)
     return info.folds
 
 
-def count_folds(binding, points):
-    """Vertices where the deformation's Jacobian determinant is <= 0 (the lattice folds there)."""
-    return int((vp.jacobian_det(binding, points) <= 0).sum())
+def count_folds(binding, points, orientation=1.0):
+    """Vertices where the deformation's Jacobian determinant is <= 0 (the lattice folds there),
+    or >= 0 under a lattice that mirrors space (`orientation` -1): a mirror alone folds nothing."""
+    return int((vp.jacobian_det(binding, points) * orientation <= 0).sum())
+
+
+def _lattice_notes(lattice):
+    """What the user should know about the lattice itself, shown with the solve's warnings."""
+    if isinstance(lattice, vp.Lattice) and 1 in lattice.shape:
+        return ("the lattice has a single point on an axis: it only moves along that axis",)
+    return ()
+
+
+def _fading(inputs, result):
+    """Vertices outside the lattice that Falloff moves partly: those outside (one definition of
+    outside for every count: a vertex on the lattice's face is inside) and not beyond the
+    falloff distance."""
+    if inputs.outside != "FALLOFF" or not isinstance(inputs.lattice, vp.Lattice):
+        return result.falloff
+    return max(result.outside - result.beyond, 0)
 
 
 def slot_output(obj):
@@ -917,6 +960,7 @@ def bind(obj, depsgraph):
         for legacy in (PIN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
             _remove_attribute(mesh, legacy)
     s.is_bound = True
+    s.applied_lattice = ""
     modifier.ensure(obj)
     # What Bind saves goes on the solver helper, local data even when the mesh is linked.
     helper = modifier.helper(obj)
@@ -949,15 +993,11 @@ def bind(obj, depsgraph):
 
     warnings = []
     if b is not None and not b.is_closed:
-        warnings.append("the mesh is not closed: the volume of an open surface is measured about "
-                        "the lattice centre")
+        warnings.append(open_mesh_words(info))
     if info.outside:
         warnings.append(outside_message(info, b is not None and isinstance(b.lattice, vp.Cage)))
-    if b is not None and isinstance(b.lattice, vp.Lattice):
-        if 1 in b.lattice.shape:
-            warnings.append("the lattice has a single point on an axis: it only moves along that axis")
     if info.folds:
-        warnings.append(f"the lattice folds space: {info.folds} vertices inverted")
+        warnings.append(f"the lattice folds space: {info.folds:,} inverted vertices")
     warnings.extend(info.warnings)
     return warnings
 
@@ -997,8 +1037,30 @@ def release(obj):
     if mesh.library is None:
         for name in (PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
             _remove_attribute(mesh, name)
+    if _shows_last_solve(obj):
+        _note_applied(obj)              # Blender's Apply: the mesh keeps the deformed shape
     obj.vpffd.is_bound = False
     forget(obj)
+
+
+def _shows_last_solve(obj):
+    """Whether the mesh's own coordinates are now the last solve's deformed output (Blender's
+    Apply wrote it), rather than the undeformed input (the modifier was removed)."""
+    state = _cache.get(obj.session_uid)
+    out = None if state is None else state.output
+    if out is None or state.written is None or len(out) != len(obj.data.vertices) or not len(out):
+        return False
+    size = float(np.ptp(out, 0).max()) or 1.0
+    co = meshio.mesh_coords(obj.data)
+    return (np.abs(state.written).max() > 1e-5 * size
+            and np.abs(co - out).max() <= 1e-6 * size)
+
+
+def _note_applied(obj):
+    """Remember which lattice's deformation is now the mesh's own shape (the panel warns that
+    Bind would deform it again)."""
+    lat = obj.vpffd.lattice
+    obj.vpffd.applied_lattice = lat.name if lat is not None else ""
 
 
 def unbind(obj):
@@ -1082,5 +1144,6 @@ def apply(obj, depsgraph):
     co = _solved_output(obj, depsgraph, "applying needs one position per vertex")
     co = co.copy()
     unbind(obj)
+    _note_applied(obj)
     mesh.vertices.foreach_set("co", co.astype(np.float32).ravel())
     mesh.update()

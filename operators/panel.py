@@ -3,9 +3,9 @@
 Bake and Status, with split properties and no animation decorators."""
 import bpy
 
-from . import bake, cage, engine, modifier
-from .status_line import LIVE_SOLVE_PATH, headline, reference_words
-from .text import count, lines, sentence
+from . import bake, cage, compiled_backend, engine, modifier
+from .status_line import applied_lattice, headline, status_lines
+from .text import count, lines, percent, sentence
 
 
 def _settings(context):
@@ -63,7 +63,8 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
             return
         s = ob.vpffd
         # First line: what VP-FFD does to this object now (details in the Status sub-panel).
-        text, icon = headline(engine.status(ob), s.is_bound, s.is_bound and bake.using_cache(ob))
+        text, icon = headline(engine.status(ob), s.is_bound, s.is_bound and bake.using_cache(ob),
+                              applied_lattice(s), compiled_backend.status()[0])
         message(layout, context, text, icon=icon)
         col = layout.column()
         col.prop(s, "lattice")
@@ -111,6 +112,9 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
         if s.outside == "FALLOFF":
             message(col, context, "Outside: Falloff is for lattices (a cage's region is not a box): "
                                   "this cage's own Outside applies", icon="INFO")
+        info = engine.status(context.object)
+        if s.is_bound and info.outside:
+            message(col, context, engine.outside_message(info, True), icon="INFO")
 
 
 class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
@@ -150,8 +154,8 @@ class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
         if s.target == "BIND" and s.is_bound:
             info = engine.status(ob)
             if info.input_percent is not None:
-                message(sub, context, f"what reaches VP-FFD has {info.input_percent:.3f}% of the "
-                                      "volume at Bind", icon="INFO")
+                message(sub, context, f"what reaches VP-FFD has {percent(info.input_percent)} of "
+                                      "the volume at Bind", icon="INFO")
         if s.lattice is not None:
             sub.prop_search(s, "mobility_group", s.lattice, "vertex_groups", text="Mobility Group")
         else:
@@ -224,49 +228,8 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
-        layout = self.layout
-        info = engine.status(ob)
-        if bake.using_cache(ob):
-            message(layout, context, f"playing the baked cache: VP-FFD is not solving "
-                                     f"({LIVE_SOLVE_PATH} switches back)", icon="FILE_CACHE")
-            return
-        if info.switched_off:
-            message(layout, context, "the VP-FFD modifier is switched off in the viewport",
-                    icon="HIDE_ON")
-            return
-        if info.paused:
-            message(layout, context, info.paused, icon="PAUSE")
-            return
-        if info.error:
-            message(layout, context, info.error, icon="ERROR")
-        if info.editing:
-            message(layout, context, "Edit Mode: solved live from the mesh as edited", icon="EDITMODE_HLT")
-        if info.volume_percent is not None:
-            message(layout, context, f"volume {info.volume_percent:.4f}% of {reference_words(info)} "
-                                     f"(plain lattice: {info.plain_percent:.4f}%)", icon="CHECKMARK")
-            if info.input_percent is not None:
-                message(layout, context, f"its input: {info.input_percent:.4f}% of the volume at Bind",
-                        icon="INFO")
-        if info.seconds is not None:
-            kernels = f" ({info.kernels} kernels)" if info.kernels else ""
-            message(layout, context, f"solved in {1e3 * info.seconds:.1f} ms on the {info.backend}"
-                                     f"{kernels}, {count(info.n_verts)} vertices", icon="TIME")
-        if info.kernels == "NumPy" and info.kernels_why:
-            message(layout, context, info.kernels_why, icon="INFO")
-        if info.backend_reason and ob.vpffd.backend != "CPU":
-            message(layout, context, info.backend_reason, icon="INFO")
-        if info.closed is False:
-            message(layout, context, "open mesh: the volume is measured about the lattice centre",
-                    icon="INFO")
-        if info.outside:
-            message(layout, context, engine.outside_message(info, cage.is_cage(ob.vpffd.lattice)),
-                    icon="INFO")
-        if info.folds:
-            message(layout, context, f"the lattice folds space: {count(info.folds)} inverted "
-                                     "vertices", icon="ERROR")
-        for text in info.warnings:
-            message(layout, context, text, icon="ERROR")
-
+        for text, icon in status_lines(engine.status(ob), bake.using_cache(ob), ob.vpffd.backend):
+            message(self.layout, context, text, icon=icon)
 
 classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction,
            OBJECT_PT_vpffd_pins, OBJECT_PT_vpffd_folds, OBJECT_PT_vpffd_overlay, OBJECT_PT_vpffd_bake,

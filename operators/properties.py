@@ -150,14 +150,15 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Show the VP-FFD modifier in viewport and render")
     is_bound: BoolProperty(name="Bound", default=False, options={"HIDDEN"},
                            description="Whether the mesh is bound to its lattice")
+    applied_lattice: StringProperty(
+        name="Applied Lattice", options={"HIDDEN"},
+        description="The lattice whose deformation Apply made the mesh's own shape: Bind would "
+                    "deform the mesh by it again (the panel says so)")
     backend: EnumProperty(
         name="Backend", default="AUTO", update=_settings_changed,
         # Numbered: files saved before CPU (NumPy) existed keep their choice.
-        items=[("AUTO", "Auto", "The GPU when a hardware GPU context exists, the mesh is large enough "
-                                "to gain, the settings allow it, the mesh keeps its place in the "
-                                "lattice from one frame to the next and the GPU's solves of this "
-                                "mesh measure faster than the CPU's; otherwise the CPU with the "
-                                "compiled kernels", 0),
+        items=[("AUTO", "Auto", "The GPU where it solves this mesh faster (large meshes, a hardware "
+                                "GPU); otherwise the CPU. Status says which, and why", 0),
                ("CPU", "CPU", "Always solve on the CPU, with the compiled kernels once they are "
                               "ready (NumPy while they compile, or where numba is missing, saying "
                               "why)", 1),

@@ -19,6 +19,12 @@ def count(n):
     return f"{int(n):,}"
 
 
+def percent(x):
+    """A percentage as the panel writes every one of them, to the README's volume bound
+    (1e-5 of the volume is 0.001%): 100.000%."""
+    return f"{float(x):.3f}%"
+
+
 def lines(text, width):
     """`text` cut into lines of at most `width` characters (at least 20), at spaces."""
     return textwrap.wrap(text, max(20, int(width)), break_long_words=False) or [""]

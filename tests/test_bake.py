@@ -549,16 +549,17 @@ def test_status_panel_logic_in_a_recording_layout(bk, tmp_path):
 
     info = bk.engine.status(ball)
     text = drawn()
-    assert f"Volume {info.volume_percent:.4f}% of its input" in text and "switched off" not in text
+    plain = f"Lattice modifier would give {info.plain_percent:.3f}% of its input"
+    assert plain in text and "switched off" not in text
     _vp_modifier(ball).show_viewport = False
     bpy.context.view_layer.update()
     text = drawn()
-    assert "switched off" in text and "Volume" not in text
+    assert "switched off" in text and "would give" not in text
     _vp_modifier(ball).show_viewport = True
     bpy.context.view_layer.update()
     bk.bake(ball, bpy.context.scene, str(tmp_path / "s.pc2"), FIRST, 3, switch=True)
     text = drawn()
-    assert "playing the baked cache" in text.lower() and "Volume" not in text
+    assert "playing the baked cache" in text.lower() and "would give" not in text
 
 
 @pytest.mark.parametrize("how", ["apply", "remove"])

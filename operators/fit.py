@@ -43,6 +43,15 @@ def add_fitted_lattice(context, meshes, resolution=4, margin=0.05, axes="XYZ"):
     return lat, results
 
 
+def poll_refusal(context):
+    """Why Lattice Deform Selected cannot run in `context`, in words, or "" when it can."""
+    if context.mode != "OBJECT":
+        return "Switch to Object Mode first"
+    if not selected_meshes(context):
+        return "Select the mesh objects to deform (a VP-FFD cage is a control, not a mesh to deform)"
+    return ""
+
+
 class OBJECT_OT_vpffd_lattice_deform_selected(bpy.types.Operator):
     """Add a lattice fitted around the selected meshes (as they reach the end of their modifier
     stacks) and bind each of them to it with VP-FFD, volume kept"""
@@ -62,7 +71,10 @@ class OBJECT_OT_vpffd_lattice_deform_selected(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        return context.mode == "OBJECT" and bool(selected_meshes(context))
+        why = poll_refusal(context)
+        if why and hasattr(cls, "poll_message_set"):     # Blender shows it on the greyed-out item
+            cls.poll_message_set(why)
+        return not why
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         meshes = selected_meshes(context)          # a VP-FFD cage is a control, not a mesh to deform

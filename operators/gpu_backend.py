@@ -183,16 +183,16 @@ def choose(backend, n_verts, options=None, binding=None, fresh=False):
     if not ok:
         return False, why
     if backend == "AUTO" and n_verts < AUTO_MIN_VERTS:
-        return False, f"Auto: {n_verts} vertices (< {AUTO_MIN_VERTS}) are faster on the CPU"
+        return False, "Auto chose the CPU: a mesh this small solves faster there"
     if backend == "AUTO" and fresh:
-        return False, ("Auto: this embedding of the mesh in the lattice is new (just bound, or the "
-                       "mesh moved relative to the lattice); it goes to the GPU once a second "
-                       "solve uses it, since uploading it costs more than the GPU saves on one")
+        return False, ("Auto chose the CPU: the mesh was just bound or moved through the lattice, "
+                       "and sending it to the GPU costs more than one solve saves there; it goes "
+                       "to the GPU once it keeps its place")
     ok, why = available()
     if not ok:
         return False, why
     if backend == "AUTO" and is_software_renderer():
-        return False, f"Auto: software OpenGL ({renderer()}) is slower than the CPU path"
+        return False, f"Auto chose the CPU: this machine draws with software OpenGL ({renderer()}), slower than the CPU"
     return True, why
 
 

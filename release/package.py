@@ -1,7 +1,10 @@
-"""`./dev package`: the packages users install, built with Blender's own extension builder.
+"""`./dev package`: the packages users install, built with Blender's own extension builder, and
+the index that makes `dist/` an extensions repository a studio serves over HTTP or as files.
 
-    ./dev package                  # dist/: one package per platform with numba's wheels, and a
-                                   # universal NumPy-only one
+    ./dev package                  # dist/: one package per platform with numba's wheels, a
+                                   # NumPy-only one for each platform numba has none for,
+                                   # index.json and index.html; dist/universal/: a NumPy-only
+                                   # package for any platform, to install from disk
     ./dev package --platform linux-x64 --python 3.13   # only what a test needs
     ./dev package --lock           # download every wheel once and write release/wheels.lock
 
@@ -13,6 +16,13 @@ wheels, so building from a fresh clone (the README's install, every test) needs 
 Every wheel is pinned by version and checked against its SHA-256 in `release/wheels.lock`
 before it is packed. Downloads are kept in `.cache/wheels/` (git-ignored); the build folder is
 `build/package/` and the packages go to `dist/` (both git-ignored).
+
+The repository's index is written by Blender's own `extension server-generate` over every package
+in the output folder, so that folder holds exactly one version of VP-FFD, with one package per
+platform: Blender lists the last of several matching entries but installs the first, so older
+versions, or a package for any platform beside the platform ones, would make what a user gets
+depend on the order of the files. The any-platform package therefore lies in a subfolder, which
+the index does not read.
 """
 import argparse
 import hashlib
@@ -21,6 +31,7 @@ import shutil
 import subprocess
 import sys
 import tomllib
+import zipfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -37,6 +48,11 @@ PLATFORMS = {
     "macos-arm64": ("macosx_12_0_arm64", ("3.11", "3.13", "3.14")),
     "windows-arm64": ("win_arm64", ("3.13",)),
 }
+#: Blender platforms with no numba wheels above (Intel Macs; ARM Linux, where Debian builds Blender):
+#: each gets a NumPy-only package in the repository.
+NUMPY_ONLY = ("macos-x64", "linux-arm64")
+#: Subfolder of the output for the NumPy-only package without platforms (any platform, any Python).
+UNIVERSAL = "universal"
 LOCK = os.path.join(HERE, "wheels.lock")
 CACHE = os.path.join(ROOT, ".cache", "wheels")
 BUILD = os.path.join(ROOT, "build", "package")
@@ -119,26 +135,26 @@ def write_lock(path=LOCK):
 
 
 def _manifest_with(text, wheels, platforms):
-    """The committed manifest's text with `wheels` and `platforms` added (top-level keys, before
-    the first table)."""
-    lines = ["wheels = [", *[f'  "./wheels/{os.path.basename(w)}",' for w in wheels], "]",
-             "platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]", ""]
+    """The committed manifest's text with `wheels` (when there are any) and `platforms` added
+    (top-level keys, before the first table)."""
+    lines = ["wheels = [", *[f'  "./wheels/{os.path.basename(w)}",' for w in wheels], "]"] if wheels else []
+    lines += ["platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]", ""]
     head, sep, rest = text.partition("\n[")
     return head.rstrip("\n") + "\n\n" + "\n".join(lines) + sep + rest
 
 
-def stage(wheels, platforms, folder):
-    """A source folder for Blender's builder: the extension's files as the committed manifest
+def stage(wheels, platforms, folder, root=ROOT):
+    """A source folder for Blender's builder: the extension's files in `root` as its manifest
     packs them, the wheels under ./wheels/, and a manifest that lists both."""
     if os.path.isdir(folder):
         shutil.rmtree(folder)
-    for rel in eh.planned_files(ROOT):
+    for rel in eh.planned_files(root):
         os.makedirs(os.path.join(folder, os.path.dirname(rel)), exist_ok=True)
-        shutil.copy2(os.path.join(ROOT, rel), os.path.join(folder, rel))
+        shutil.copy2(os.path.join(root, rel), os.path.join(folder, rel))
     os.makedirs(os.path.join(folder, "wheels"), exist_ok=True)
     for w in wheels:
         shutil.copy2(w, os.path.join(folder, "wheels", os.path.basename(w)))
-    with open(os.path.join(ROOT, "blender_manifest.toml")) as fh:
+    with open(os.path.join(root, "blender_manifest.toml")) as fh:
         text = _manifest_with(fh.read(), wheels, platforms)
     tomllib.loads(text)                                   # still TOML
     with open(os.path.join(folder, "blender_manifest.toml"), "w") as fh:
@@ -146,34 +162,97 @@ def stage(wheels, platforms, folder):
     return folder
 
 
-def build(platforms, pythons=None, out=DIST, universal=True):
-    """Build the packages; returns their paths. `platforms`: Blender platform names; `pythons`:
-    limit the wheels to these Python versions (None: every version numba has)."""
-    lock = read_lock()
+def locked_wheels(platforms, pythons, lock):
+    """The checked wheels for `platforms`, limited to `pythons` (None: every version numba has)."""
+    wheels = []
+    for platform in platforms:
+        for python in PLATFORMS[platform][1]:
+            if pythons is None or python in pythons:
+                wheels += checked_wheels(platform, python, lock)
+    return wheels
+
+
+def _archive_manifest(path):
+    """The manifest inside a package, or None when `path` is no package."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return tomllib.loads(zf.read("blender_manifest.toml").decode("utf-8"))
+    except (zipfile.BadZipFile, KeyError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return None
+
+
+def remove_other_versions(folder, manifest):
+    """Delete the packages of this extension in `folder` whose version is not `manifest`'s (the
+    index must list one version only); other extensions' packages stay. Returns what went."""
+    gone = []
+    if not os.path.isdir(folder):
+        return gone
+    for name in sorted(os.listdir(folder)):
+        path = os.path.join(folder, name)
+        if not name.endswith(".zip") or not os.path.isfile(path):
+            continue
+        other = _archive_manifest(path)
+        if other and other.get("id") == manifest["id"] and other.get("version") != manifest["version"]:
+            os.remove(path)
+            gone.append(path)
+    return gone
+
+
+def build_split(wheels, platforms, out, root=ROOT):
+    """One package per platform from `root` with `wheels` (none: NumPy only), by Blender's
+    builder with --split-platforms; their paths."""
+    folder = stage(wheels, platforms, os.path.join(BUILD, "source"), root)
+    rc, messages = eh.run_extension_cli(
+        "build", "--source-dir", folder, "--output-dir", out, "--split-platforms",
+        "--valid-tags", eh.blender_tags_file(), timeout=1800)
+    if eh._failed(rc, messages):
+        raise PackageError("Blender's builder refused the package:\n"
+                           + "\n".join(f"{k}: {m}" for k, m in messages))
+    manifest = eh.read_manifest(root)
+    made = []
+    for platform in platforms:
+        path = os.path.join(out, f"{manifest['id']}-{manifest['version']}-{platform.replace('-', '_')}.zip")
+        if not os.path.isfile(path):
+            raise PackageError(f"the builder made no {os.path.basename(path)}: {messages}")
+        made.append(path)
+    return made
+
+
+def write_index(folder):
+    """index.json and index.html over the packages in `folder`, by Blender's own
+    `extension server-generate`; a warning (such as two packages matching one system) is an
+    error here, since Blender would then install whichever it reads first. Returns index.json."""
+    rc, messages = eh.run_extension_cli("server-generate", "--repo-dir", folder, "--html")
+    if eh._failed(rc, messages) or any(kind == "WARN" for kind, _ in messages):
+        raise PackageError("Blender's server-generate refused the repository:\n"
+                           + "\n".join(f"{k}: {m}" for k, m in messages))
+    return os.path.join(folder, "index.json")
+
+
+def build(platforms, pythons=None, out=DIST, universal=True, numpy_only=NUMPY_ONLY, root=ROOT):
+    """Build the packages from `root` into `out`, each validated by Blender, and the repository's
+    index over `out`; returns the packages' paths. `platforms`: Blender platform names that get
+    numba's wheels; `pythons`: limit the wheels to these Python versions (None: every version
+    numba has); `numpy_only`: platforms that get a package without wheels; `universal`: also the
+    any-platform package, in out/universal/."""
+    clash = set(platforms) & set(numpy_only)
+    if clash:
+        raise PackageError(f"{sorted(clash)} would get two packages")
+    wheels = locked_wheels(platforms, pythons, read_lock())    # before anything is written
+    manifest = eh.read_manifest(root)
     os.makedirs(out, exist_ok=True)
     made = []
     if universal:
-        made.append(eh.build_extension_zip(ROOT, out))      # NumPy only: no wheels, any platform
+        remove_other_versions(os.path.join(out, UNIVERSAL), manifest)
+        made.append(eh.build_extension_zip(root, os.path.join(out, UNIVERSAL)))
+    remove_other_versions(out, manifest)
     if platforms:
-        wheels = []
-        for platform in platforms:
-            for python in PLATFORMS[platform][1]:
-                if pythons is None or python in pythons:
-                    wheels += checked_wheels(platform, python, lock)
-        folder = stage(wheels, platforms, os.path.join(BUILD, "source"))
-        rc, messages = eh.run_extension_cli(
-            "build", "--source-dir", folder, "--output-dir", out, "--split-platforms",
-            "--valid-tags", eh.blender_tags_file(), timeout=1800)
-        if eh._failed(rc, messages):
-            raise PackageError("Blender's builder refused the package:\n"
-                               + "\n".join(f"{k}: {m}" for k, m in messages))
-        manifest = eh.read_manifest(ROOT)
-        for platform in platforms:
-            path = os.path.join(out, f"{manifest['id']}-{manifest['version']}-{platform.replace('-', '_')}.zip")
-            if not os.path.isfile(path):
-                raise PackageError(f"the builder made no {os.path.basename(path)}: {messages}")
-            eh.validate_manifest(path)
-            made.append(path)
+        made += build_split(wheels, platforms, out, root)
+    if numpy_only:
+        made += build_split([], numpy_only, out, root)
+    for path in made:
+        eh.validate_manifest(path)
+    write_index(out)
     return made
 
 
@@ -191,6 +270,8 @@ def main(argv=None):
             return 0
         for path in build(args.platform or list(PLATFORMS), args.python, args.out):
             print(f"package: {os.path.relpath(path, ROOT)}  {os.path.getsize(path) / 2 ** 20:.1f} MiB")
+        print(f"package: {os.path.relpath(os.path.join(args.out, 'index.json'), ROOT)} and index.html: "
+              "the repository's index (serve the folder, or add file:///.../index.json)")
     except (PackageError, eh.ExtensionBuildError, eh.ExtensionValidationError) as exc:
         print(f"package: {exc}", file=sys.stderr)
         return 1

@@ -48,12 +48,13 @@ print("VPFFD-NUMBA " + json.dumps({"version": numba.__version__, "file": numba._
 
 @pytest.fixture(scope="module")
 def linux_package(tmp_path_factory):
+    """The universal package, the linux-x64 one, then the NumPy-only ones (package.NUMPY_ONLY)."""
     out = tmp_path_factory.mktemp("dist")
     return package.build(["linux-x64"], [PY], out=str(out), universal=True)
 
 
 def test_the_platform_package_holds_only_its_locked_wheels(linux_package):
-    universal, linux = linux_package
+    universal, linux = linux_package[:2]
     lock = package.read_lock()
     locked = {name for name, _ in lock[("linux-x64", PY)]}
     with zipfile.ZipFile(linux) as zf:
@@ -64,6 +65,11 @@ def test_the_platform_package_holds_only_its_locked_wheels(linux_package):
     with zipfile.ZipFile(universal) as zf:
         assert not [n for n in zf.namelist() if n.startswith("wheels/")]
     eh.validate_manifest(linux)
+    with open(os.path.join(os.path.dirname(linux), "index.json")) as fh:
+        index = json.load(fh)
+    entry, = [e for e in index["data"] if e["archive_url"] == "./" + os.path.basename(linux)]
+    assert entry["platforms"] == ["linux-x64"] and entry["python_versions"] == [PY]
+    assert os.path.basename(universal) not in json.dumps(index), "the universal one stays out"
 
 
 def test_a_wheel_that_differs_from_the_lock_is_refused(tmp_path, monkeypatch):
@@ -77,7 +83,7 @@ def test_a_wheel_that_differs_from_the_lock_is_refused(tmp_path, monkeypatch):
 
 
 def test_numba_from_the_package_runs_in_blender(linux_package, tmp_path):
-    _, linux = linux_package
+    linux = linux_package[1]
     script = tmp_path / "numba_session.py"
     script.write_text(SESSION)
     user = tmp_path / "user"

@@ -50,6 +50,71 @@ MUTATIONS = {
         "wws[blk, k, pos] = ww[v, k] * s[v]",
         "wws[blk, k, pos] = ww[v, k]",
         ["tests/test_core_compiled.py"], {}),
+    "target-bind-from-result": (
+        "operators/engine.py",
+        "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / ",
+        "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes * abs(state.result.volume / b.rest_volume) / ",
+        ["tests/test_outside_target_blender.py", "-k", "volume_scale"], {}),
+    "bind-island-volumes-order": (
+        "operators/engine.py",
+        "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / ",
+        "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes[::-1] / ",
+        ["tests/test_outside_target_blender.py", "-k", "gives_back"], {}),
+    "undo-relink-noop": (
+        "operators/handlers.py",
+        "                engine.relink_after_undo(ob, bpy.data.objects)",
+        "                pass",
+        ["tests/test_lifecycle_blender.py", "-k", "undo"], {}),
+    "fit-margin-ignored": (
+        "operators/fit.py",
+        "add_fitted_lattice(context, meshes, self.resolution, self.margin, self.axes)",
+        "add_fitted_lattice(context, meshes, self.resolution, 0.05, self.axes)",
+        ["tests/test_fit_blender.py", "-k", "every_option"], {}),
+    "fit-resolution-ignored": (
+        "operators/fit.py",
+        "add_fitted_lattice(context, meshes, self.resolution, self.margin, self.axes)",
+        "add_fitted_lattice(context, meshes, 4, self.margin, self.axes)",
+        ["tests/test_fit_blender.py", "-k", "every_option"], {}),
+    "fit-correction-ignored": (
+        "operators/fit.py",
+        "add_fitted_lattice(context, meshes, self.resolution, self.margin, self.axes)",
+        "add_fitted_lattice(context, meshes, self.resolution, self.margin)",
+        ["tests/test_fit_blender.py", "-k", "every_option"], {}),
+    "panel-percent-from-target": (
+        "operators/engine.py",
+        'info["volume_percent"] = 100.0 * abs(result.volume / reference)',
+        'info["volume_percent"] = 100.0 * s.volume_scale',
+        ["tests/test_panel_blender.py", "-k", "measured or refused"], {}),
+    "mirror-counted-as-fold": (
+        "operators/engine.py",
+        "state.orientation = mirrored, -1.0 if mirrored else 1.0",
+        "state.orientation = mirrored, 1.0",
+        ["tests/test_panel_blender.py", "-k", "mirror"], {}),
+    "warnings-miscounted": (
+        "operators/status_line.py",
+        "    warned = problems(info)\n    if info.volume_percent is not None:\n        text",
+        "    warned = list(info.warnings)\n    if info.volume_percent is not None:\n        text",
+        ["tests/test_panel_blender.py"], {}),
+    "single-point-only-at-bind": (
+        "operators/engine.py",
+        "    if isinstance(lattice, vp.Lattice) and 1 in lattice.shape:",
+        "    if False:",
+        ["tests/test_panel_blender.py", "-k", "single_point"], {}),
+    "falloff-counts-face-vertices": (
+        "operators/engine.py",
+        "    return max(result.outside - result.beyond, 0)",
+        "    return result.falloff",
+        ["tests/test_panel_blender.py", "-k", "falloff"], {}),
+    "open-mesh-aims-at-zero": (
+        "operators/engine.py",
+        "    if frame.inputs.correct and encloses_nothing(result):",
+        "    if False:",
+        ["tests/test_panel_blender.py", "-k", "open_mesh"], {}),
+    "apply-forgets-the-lattice": (
+        "operators/engine.py",
+        "    unbind(obj)\n    _note_applied(obj)",
+        "    unbind(obj)",
+        ["tests/test_panel_blender.py", "-k", "after_apply"], {}),
     "bpy-missing": (
         None, None, None,
         ["tests/test_stack_blender.py"], {"PYTHONPATH": "{stub}"}),

@@ -93,3 +93,23 @@ def test_nothing_selected_that_can_be_bound_is_refused(ext):
     assert _run([ball, cage_ob], ball) == {"FINISHED"}
     assert ball.vpffd.is_bound and not cage_ob.vpffd.is_bound
     assert not any(m.type == "NODES" for m in cage_ob.modifiers)
+
+
+@pytest.mark.parametrize("resolution, margin, axes", [(3, 0.3, "XY"), (7, 0.0, "Z")])
+def test_every_option_shapes_the_fitted_lattice_as_documented(ext, resolution, margin, axes):
+    """Resolution: the points along the longest side; Margin: room on each side, a fraction of the
+    meshes' largest extent; Correction: each mesh's. Each differs from its default here."""
+    v, f = core.icosphere(3, 0.5)
+    ball = bpy.data.objects.new("Ball", triangle_mesh(v * [1.6, 1.0, 0.7], f, "Ball"))
+    bpy.context.scene.collection.objects.link(ball)
+    bpy.context.view_layer.update()
+    reach = evaluated_world(ball)[0]
+    assert _run([ball], ball, resolution=resolution, margin=margin, axes=axes) == {"FINISHED"}
+    lat = bpy.context.view_layer.objects.active
+    shape = (lat.data.points_u, lat.data.points_v, lat.data.points_w)
+    assert shape[0] == max(shape) == resolution, shape         # the longest side is X
+    lo, hi = _world_box(lat)
+    room = margin * np.ptp(reach, 0).max()
+    np.testing.assert_allclose(lo, reach.min(0) - room, atol=1e-5)
+    np.testing.assert_allclose(hi, reach.max(0) + room, atol=1e-5)
+    assert ball.vpffd.is_bound and ball.vpffd.axes == axes

@@ -320,3 +320,26 @@ def test_the_panels_first_line_says_what_is_shown(ext):
     bpy.context.scene.frame_set(4)
     text, icon = first_line()
     assert icon == "ERROR" and "'Lattice' was deleted" in text
+
+
+def test_undo_after_deleting_the_lattice_links_it_back(ext):
+    """Delete the lattice (the mesh lets go of it), then Undo: Blender brings the lattice back
+    but keeps the mesh as it is in memory, its Lattice field cleared (VP-FFD let go after Delete's
+    undo step was written). VP-FFD's undo handler, which Blender calls after every undo, links the
+    lattice back: the mesh deforms as before Delete and no error stays."""
+    ball, lat = _ball(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    shown = _coords(ball)
+    eng = _engine(ext)
+    _delete(lat)
+    bpy.context.scene.frame_set(2)
+    assert ball.vpffd.lattice is None and "'Lattice' was deleted" in eng.stats(ball)["error"]
+    # What undo restores: the lattice object in the scene again, the mesh's field still cleared.
+    bpy.context.scene.collection.objects.link(lat)
+    bpy.context.view_layer.update()
+    assert ball.vpffd.lattice is None
+    ext.module.operators.handlers.on_undo()            # as Blender calls it after the undo
+    assert ball.vpffd.lattice == lat
+    bpy.context.scene.frame_set(3)
+    assert eng.stats(ball).get("error") is None, eng.stats(ball)
+    np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)

@@ -105,13 +105,14 @@ def test_inside_only_leaves_outside_vertices_exactly_in_place(ext):
     assert abs(_volume(co, tris) / _volume(rest, tris) - 1) <= 1e-5
 
 
-def _arm(name, centres):
-    """Closed tubes (one island per centre) along Z through an elbow at the origin, weighted to a
-    two-bone rig that bends 70 degrees between frames 1 and 10, and a lattice around the elbow."""
+def _arm(name, centres, radii=None):
+    """Closed tubes (one island per centre, of the given radii) along Z through an elbow at the
+    origin, weighted to a two-bone rig that bends 70 degrees between frames 1 and 10, and a
+    lattice around the elbow."""
     verts, tris = [], []
-    for cx in centres:
+    for cx, r in zip(centres, radii or (0.12,) * len(centres)):
         v, f = core.icosphere(4, 1.0)
-        v = v * [0.12, 0.12, 0.6] + [cx, 0.0, 0.0]
+        v = v * [r, r, 0.6] + [cx, 0.0, 0.0]
         tris.append(f + sum(len(x) for x in verts))
         verts.append(v)
     verts, tris = np.vstack(verts), np.vstack(tris)
@@ -130,8 +131,9 @@ def _arm(name, centres):
 
 @pytest.mark.parametrize("islands", [False, True])
 def test_target_bind_gives_back_the_volume_the_armature_takes(ext, tmp_path, islands):
-    centres = (-0.2, 0.2) if islands else (0.0,)
-    ob, tris, lat = _arm("Arm", centres)
+    # Islands of clearly different sizes: each must get its own volume at Bind back, not another's.
+    centres, radii = ((-0.2, 0.2), (0.12, 0.06)) if islands else ((0.0,), (0.12,))
+    ob, tris, lat = _arm("Arm", centres, radii)
     scene = bpy.context.scene
     scene.frame_set(1)
     rest = _mesh_co(ob)                                # the rest pose reaches the slot at Bind
@@ -161,3 +163,25 @@ def test_target_bind_gives_back_the_volume_the_armature_takes(ext, tmp_path, isl
     bpy.context.scene.frame_set(10)
     again = evaluated_world(ob)[0]
     np.testing.assert_allclose([_volume(again, g) for g in groups], bind_volumes, rtol=1e-5)
+
+
+def test_target_bind_keeps_volume_scale_times_the_volume_at_bind(ext):
+    """Volume Scale 1.2 with Target: Bind: the arm, bound in its rest pose, holds 120% of the
+    volume it had at Bind (measured here from its rest coordinates) on the bent frame too, and the
+    panel says 120%. The volume at Bind is what reached VP-FFD then, not the corrected result
+    (that would give 144% while the panel still said 120%)."""
+    ob, tris, lat = _arm("Arm", (0.0,))
+    scene = bpy.context.scene
+    scene.frame_set(1)
+    bind_volume = _volume(_mesh_co(ob), tris)
+    assert _bind(ob, lattice=lat, axes="XYZ", target="BIND", volume_scale=1.2,
+                 outside="FALLOFF", falloff_distance=0.5) == {"FINISHED"}
+    line = ext.module.operators.status_line.headline
+    for frame in (1, 10):
+        scene.frame_set(frame)
+        measured = _volume(evaluated_world(ob)[0], tris) / bind_volume
+        assert abs(measured / 1.2 - 1) <= 1e-5, (frame, measured)
+        info = _engine(ext).status(ob)
+        assert abs(info.volume_percent - 100 * measured) <= 1e-6 * 100 * measured, (frame, info)
+        assert line(info, True, False)[0] == f"volume {info.volume_percent:.3f}% of its volume at Bind"
+    assert _engine(ext).status(ob).input_percent < 99.5, "the bend lost volume before VP-FFD"

@@ -187,42 +187,43 @@ def test_the_panels_figure_is_the_measured_volume_when_the_target_cannot_be_met(
 
 
 def _on_the_faces(lat):
-    """A closed box mesh whose y and z faces lie on the lattice's faces (world coordinates made
-    in float32, as a user snaps vertices there) and which reaches out of its +X face."""
+    """A closed box mesh whose y and z faces lie on the faces of the (rotated) lattice, its
+    coordinates rounded to float32 as Blender stores them (so some land a hair outside), reaching
+    out of the lattice's +X face by half its width. Returns (mesh object, its vertices in the
+    lattice's space, float64)."""
     m = np.array(lat.matrix_world)
-    lo, hi = (m[:3, :3] @ np.full(3, h) + m[:3, 3] for h in (-0.5, 0.5))
-    v, f = core.box(8, 1.0)
-    v = v + 0.5                                       # [0, 1] per axis
-    v = lo + v * (hi - lo) * [1.5, 1.0, 1.0]           # x reaches half the lattice's width beyond
-    ob = bpy.data.objects.new("Box", triangle_mesh(v, f, "Box"))
+    v, f = core.box(8, 1.0)                          # [-0.5, 0.5] per axis: the rest box
+    v[:, 0] = (v[:, 0] + 0.5) * 1.5 - 0.5
+    ob = bpy.data.objects.new("Box", triangle_mesh(v @ m[:3, :3].T + m[:3, 3], f, "Box"))
     bpy.context.scene.collection.objects.link(ob)
-    return ob, lo, hi
+    world = np.array([p.co for p in ob.data.vertices], np.float64)     # the float32 values
+    return ob, (world - m[:3, 3]) @ np.linalg.inv(m[:3, :3]).T
 
 
 def test_falloff_counts_use_one_definition_of_outside(ext):
-    """Vertices exactly on the lattice's faces are inside for every count: those outside are
-    the ones fading plus the ones beyond the falloff distance, each counted independently here
-    from the mesh's float32 coordinates."""
+    """Vertices on the lattice's faces are inside for every count: those outside are the ones
+    fading plus the ones beyond the falloff distance, each counted independently here from the
+    mesh's float32 coordinates."""
     lt = bpy.data.lattices.new("L")                  # 2 points per axis: rest box [-0.5, 0.5]
     lat = bpy.data.objects.new("L", lt)
     lat.location, lat.scale = (0.37, -0.21, 0.13), (0.7, 0.9, 1.1)
+    lat.rotation_euler = (0.3, -0.2, 0.5)
     bpy.context.scene.collection.objects.link(lat)
     bpy.context.view_layer.update()
-    ob, lo, hi = _on_the_faces(lat)
-    co = np.array([v.co for v in ob.data.vertices], np.float64)     # float32 values
-    excess = np.maximum(np.maximum(lo - co, co - hi), 0.0) / (hi - lo)
+    ob, local = _on_the_faces(lat)
+    excess = np.maximum(np.abs(local) - 0.5, 0.0)    # the rest box is 1 wide along each axis
     d = np.sqrt((excess ** 2).sum(1))
-    tol = 1e-6                                        # float32 rounding of the snapped faces
+    tol = 1e-6                                       # far above float32 rounding, far below a step
     outside, beyond = d > tol, d >= 0.25
-    on_face = (d <= tol) & (np.minimum(np.abs(co - lo), np.abs(co - hi)).min(1) <= tol * np.ptp(co))
-    assert on_face.sum() > 100 and outside.sum() > 20 and beyond.sum() > 0
+    hair = (d > 0) & (d <= tol)                      # on a face, rounded a hair outside
+    assert hair.sum() > 20 and outside.sum() > 20 and beyond.sum() > 0, (hair.sum(), outside.sum())
     assert _bind(ob, lattice=lat, axes="XYZ", outside="FALLOFF", falloff_distance=0.25) == {"FINISHED"}
     info = _ops(ext).engine.status(ob)
-    assert (info.outside, info.falloff, info.beyond) == \
-        (outside.sum(), (outside & ~beyond).sum(), beyond.sum()), info
+    fading = outside & ~beyond
+    assert (info.outside, info.falloff, info.beyond) == (outside.sum(), fading.sum(), beyond.sum()), info
     words = _ops(ext).engine.outside_message(info, False)
-    assert words.startswith(f"{outside.sum():,} of {len(co):,} vertices lie outside the lattice "
-                            f"(the deformation fades out over {(outside & ~beyond).sum():,} of them"), words
+    assert words.startswith(f"{outside.sum():,} of {len(local):,} vertices lie outside the lattice "
+                            f"(the deformation fades out over {fading.sum():,} of them"), words
     # Said once, beside the Outside setting, not again in Status.
     assert not any("lie outside" in t for t, _ in _status_lines(ext, ob))
 

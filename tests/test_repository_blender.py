@@ -98,6 +98,8 @@ def life(tmp_path_factory):
     url = url_of(repo)
     out = {"published_old": publish(repo), "index_old": read_index(repo)}
     out["ui_install"] = step(ui, "ui-install", url)
+    # Hermetic: sync refreshes every remote repository, extensions.blender.org's too.
+    out["cli_remove_blender_org"] = step(cli, "cli", "repo-remove", "blender_org")
     out["cli_add"] = step(cli, "cli", "repo-add", "studio", "--url", url)
     out["cli_sync_offline"] = step(cli, "cli", "sync")
     out["cli_sync"] = step(cli, "cli", "--online", "sync")
@@ -197,6 +199,8 @@ def test_preferences_see_the_new_version_and_update(life):
 # ------------------------------------------------------------------------------ command line
 
 def test_command_line_adds_syncs_and_installs(life):
+    assert life["cli_remove_blender_org"]["step"]["returncode"] == 0
+    assert "blender_org" not in life["cli_add"]["before"]["repos"]
     assert life["cli_add"]["step"]["returncode"] == 0
     assert life["cli_add"]["after"]["repos"]["studio"] == url_of(os.path.dirname(
         life["published_old"][0]))

@@ -1,11 +1,15 @@
-"""A farm worker's command lines against a studio's extensions repository, with Debian's real
-`blender`: `./dev package` publishes into a folder (here a NumPy-only package for this platform,
-so nothing is downloaded), the worker adds it with `blender --command extension repo-add`, syncs
-and installs; a newer version is published into the same folder, and `list` shows it outdated
-and `update` installs it, enabled. Every command is its own Blender process, sharing one user's
-preferences, as on a worker. The same commands are what the README gives studios."""
+"""A farm worker's command lines against a studio's extensions repository served over HTTP, with
+Debian's real `blender`: `./dev package` publishes into a folder (here a NumPy-only package for
+this platform, so nothing is downloaded) that a plain static-file server serves; the worker adds
+it with `blender --command extension repo-add`, syncs and installs; a newer version is published
+into the same folder, and `list` shows it outdated and `update` installs it, enabled. Every
+command is its own Blender process, sharing one user's preferences, as on a worker. These are the
+commands the README gives studios (test_repository_blender.py takes a file:// URL)."""
+import functools
+import http.server
 import os
 import re
+import threading
 
 import pytest
 
@@ -45,6 +49,21 @@ def installed(work):
     return found.group(1), found.group(2) == "True", found.group(3) == "True"
 
 
+@pytest.fixture
+def served(tmp_path):
+    """(folder, URL of its index.json) served by Python's static-file server on this machine,
+    which the chroot shares the network with."""
+    folder = tmp_path / "repo"
+    folder.mkdir()
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(folder))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield str(folder), f"http://127.0.0.1:{server.server_address[1]}/index.json"
+    server.shutdown()
+    server.server_close()
+
+
 @pytest.fixture(scope="module")
 def worker(chroot):
     work = bc.new_workdir()
@@ -53,10 +72,9 @@ def worker(chroot):
         bc.remove_workdir(work)
 
 
-def test_a_worker_installs_from_the_repository_and_updates(worker, tmp_path):
-    repo = os.path.join(worker, "repo")
+def test_a_worker_installs_from_the_repository_and_updates(worker, served, tmp_path):
+    repo, url = served
     trb.publish(repo)
-    url = "file://" + bc._inside(bc.chroot_dir(), os.path.join(repo, "index.json"))
 
     # Offline workers: sync would also try extensions.blender.org, which is not wanted here.
     assert blender(worker, "--command", "extension", "repo-remove", "blender_org")[0] == 0

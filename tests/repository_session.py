@@ -7,9 +7,11 @@ folder, as successive Blender sessions of one user share their preferences. Each
 Steps:
 
 * ``ui-install URL``: what Preferences > Get Extensions does: Repositories > Add Remote
-  Repository with URL, Check for Updates (a sync), then Install on VP-FFD; saves the preferences.
-* ``ui-update``: Check for Updates again; when VP-FFD's row shows the newer version, its Update
-  button (the same operator as Install, enabling what was enabled); saves the preferences.
+  Repository with URL, its sync (which the window runs on adding; background Blender leaves it
+  to the caller), then Install on VP-FFD's row; saves the preferences.
+* ``ui-update``: the refresh button of the repository; when VP-FFD's row shows the newer
+  version, its Update button (the same operator as Install, enabling what was enabled); saves
+  the preferences.
 * ``cli [--online] ARGS...``: ``blender [--online-mode] --command extension ARGS...``: the handler
   of Blender's command (bl_pkg's bl_extension_cli) with these arguments; ``--online`` allows online
   access for this run only, as ``--online-mode`` does.
@@ -101,7 +103,9 @@ def ui_update():
     import bpy
     url = next(r.remote_url for r in _repos() if r.name == "Studio")
     index = _repo_index(url)
-    report = {"sync": _run(bpy.ops.extensions.repo_sync, repo_index=index),
+    # The refresh button beside the active repository in the Repositories list.
+    bpy.context.preferences.extensions.active_repo = index
+    report = {"sync": _run(bpy.ops.extensions.repo_sync_all, use_active_only=True),
               "remote_version": remote_version(index)}
     module = next(r.module for r in _repos() if r.name == "Studio")
     import addon_utils

@@ -1,10 +1,21 @@
-"""The compiled kernels against the NumPy steps, in one process, timed alternately (so that a
-machine's drift hits both alike): `python -m benchmarks.compiled_kernels [--subdivisions 7]`.
+"""The compiled solve against the NumPy steps, pass by pass, in one process, timed alternately (so
+that a machine's drift hits both alike):
 
-Prints JSON: the milliseconds (median of the rounds) of the volume gradient along an axis and of a
-whole XYZ solve (163,842 vertices at 7 subdivisions, a 6x6x6 B-spline lattice, float32), for the
-NumPy steps and the compiled ones, the time `compiled.load()` took, and how far the two solves'
-vertices are apart (in units of the lattice's size)."""
+    python -m benchmarks.compiled_kernels [--subdivisions 7] [--lattice 6] [--rounds 9]
+
+An icosphere (163,842 vertices at 7 subdivisions, radius 0.45) in a B-spline lattice spanning
+[-0.5, 0.5]^3, squashed and jittered, float32 (as the extension binds). Prints JSON: the milliseconds
+(median of the rounds) of
+
+- `forward`: one component of X = x0 + S B D;
+- `axis_pass`: what one correction direction needs from the mesh: the gradient along an axis,
+  (S B)^T g, x0_a . g and sum |s g| (one fused pass compiled; four NumPy calls);
+- `verts`: the deformed vertices from the slots;
+- `solve`: a whole XYZ solve;
+
+for the NumPy steps and the compiled ones, the bytes each pass reads and writes per slot, the
+time `compiled.load()` took, and how far the two solves' vertices are apart (in lattice sizes).
+"""
 import argparse
 import json
 import time
@@ -12,7 +23,7 @@ import time
 import numpy as np
 
 import vpffd_addon as vp
-from vpffd_addon import compiled
+from vpffd_addon import compiled, parallel
 from vpffd_addon.steps import NumpySteps
 
 
@@ -22,35 +33,64 @@ def _ms(fn):
     return 1e3 * (time.perf_counter() - t0)
 
 
+def problem(subdivisions, lattice):
+    """(binding, points): the benchmark's float32 binding and squashed, jittered control points."""
+    v, f = vp.icosphere(subdivisions, 0.45)
+    lat = vp.Lattice((lattice,) * 3, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    b = vp.bind(lat, v, f, dtype=np.float32)
+    rng = np.random.default_rng(0)
+    P = lat.rest_points + rng.normal(0, 0.02, lat.rest_points.shape)
+    P[:, 2] *= 0.7
+    return b, P
+
+
+def passes(steps, D):
+    """{name: callable} of one kind of steps' passes at displacements D."""
+    def axis_pass():
+        g = steps.axis_gradient(0, D)
+        steps.transpose(g, None)
+        steps.x0_dot(0, g, None)
+        steps.flux(g, None)
+    return {"forward": lambda: steps._forward([0], D), "axis_pass": axis_pass, "verts": lambda: steps.verts(D)}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--subdivisions", type=int, default=7)
-    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--lattice", type=int, default=6)
+    ap.add_argument("--rounds", type=int, default=9)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     if not compiled.load():
         raise SystemExit(f"compiled kernels unavailable: {compiled.why()}")
     load_s = time.perf_counter() - t0
-    v, f = vp.icosphere(args.subdivisions, 0.8)
-    lat = vp.Lattice((6, 6, 6), ("BSPLINE",) * 3)
-    b = vp.bind(lat, v, f, dtype=np.float32)
-    rng = np.random.default_rng(0)
-    P = lat.rest_points + rng.normal(0, 0.03, lat.rest_points.shape)
-    P[:, 2] *= 0.7
-    D = P - lat.rest_points
+    b, P = problem(args.subdivisions, args.lattice)
+    D = P - b.lattice.rest_points
     kinds = {"numpy": NumpySteps, "compiled": compiled.CompiledSteps}
     steps = {k: make(b) for k, make in kinds.items()}
     for s in steps.values():
         s.refresh((0, 1, 2), D)
-    times = {f"{what}_{k}": [] for what in ("gradient", "solve") for k in kinds}
+    work = {k: passes(s, D) for k, s in steps.items()}
+    for k, make in kinds.items():
+        work[k]["solve"] = lambda make=make: vp.solve.solve(b, P, axes="XYZ", steps=make)
+    times = {f"{what}_{k}": [] for k in kinds for what in work[k]}
     for _ in range(args.rounds):
-        for k, make in kinds.items():
-            times[f"gradient_{k}"].append(_ms(lambda: steps[k]._gradient(1, 2)))
-            times[f"solve_{k}"].append(_ms(lambda: vp.solve.solve(b, P, axes="XYZ", steps=make)))
+        for k in kinds:
+            for what, fn in work[k].items():
+                times[f"{what}_{k}"].append(_ms(fn))
     ref = vp.solve.solve(b, P, axes="XYZ", steps=NumpySteps)
     out = vp.solve.solve(b, P, axes="XYZ", steps=compiled.CompiledSteps)
-    report = {"vertices": b.n_verts, "load_seconds": round(load_s, 2),
-              "max_vertex_difference_rel": float(np.abs(out.verts - ref.verts).max() / np.ptp(lat.rest_points, 0).max())}
+    n_slots = b.x0.shape[1]
+    start, pairs = compiled.incidence(b)
+    report = {"vertices": b.n_verts, "slots": n_slots, "lattice": list(b.lattice.shape), "threads": len(b.block_parts),
+              "load_seconds": round(load_s, 2),
+              "max_vertex_difference_rel": float(np.abs(out.verts - ref.verts).max() / b.lattice.size),
+              "volume_rel_error_compiled": abs(out.volume / out.target_volume - 1),
+              # What the compiled passes stream per slot (float32): params 16 B, x0 and X 4 B each per
+              # component, the faces around a slot (8 B a pair, about 6 pairs) and the gathered
+              # coordinates; the NumPy steps read 80 B of stored weights per slot per product.
+              "compiled_bytes_per_slot": {"forward": 16 + 8, "axis_pass": round(16 + 4 + 8 + (pairs.nbytes + start.nbytes) / n_slots + 8, 1)},
+              "numpy_bytes_per_slot": {"forward": 80 + 8, "transpose": 80 + 8}}
     report.update({k: round(float(np.median(v)), 2) for k, v in times.items()})
     print(json.dumps(report, indent=1))
 

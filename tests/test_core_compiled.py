@@ -41,14 +41,54 @@ def _problem(dtype, n_sub=4, islands=False, seed=3):
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
-def test_the_compiled_gradient_equals_numpys(kernels, dtype):
-    b, P = _problem(dtype)
+@pytest.mark.parametrize("islands", [False, True])
+def test_the_compiled_pass_equals_numpys_gradient_and_sums(kernels, dtype, islands):
+    # One pass gives the gradient, (S B)^T g per volume row, x0_a . g and sum |s g|: each equal
+    # to what the NumPy steps compute separately, along every axis and along a direction.
+    b, P = _problem(dtype, islands=islands)
     D = P - b.lattice.rest_points
     ref, fast = NumpySteps(b), kernels.CompiledSteps(b)
+    rows, k = (b.slot_island, b.n_islands) if islands else (None, 1)
+    rel = 1e-6 if dtype == np.float32 else 1e-12
+    ref.refresh((0, 1, 2), D)
+    fast.refresh((0, 1, 2), D)
+    # The two forward products agree to the rounding of the binding's precision; from here on both
+    # kinds of steps start from the same coordinates, so that the gradients can be held to float64.
+    assert np.abs(fast.X - ref.X).max() <= 2 * np.finfo(dtype).eps * np.abs(ref.X).max()
+    fast.X[:] = ref.X
+    # A slot's gradient sums about six products of coordinates: in float32 the compiled kernel may
+    # fuse a product and a difference (one rounding fewer), so they agree to the rounding of those
+    # products; in float64 to that of the float64 sums.
+    terms = 6 * np.abs(ref.X).max() ** 2
+    g_tol = (4 * np.finfo(np.float32).eps if dtype == np.float32 else 1e-14) * terms
     for axis in range(3):
         g_ref, g = ref.axis_gradient(axis, D), fast.axis_gradient(axis, D)
-        scale = np.abs(g_ref).max()
-        assert np.abs(g - g_ref).max() <= 1e-12 * scale
+        assert np.abs(g.g - g_ref).max() <= g_tol
+        alpha_ref, alpha = ref.transpose(g_ref, rows, k), fast.transpose(g, rows, k)
+        assert alpha.shape == alpha_ref.shape == (k, b.lattice.n_points)
+        assert np.abs(alpha - alpha_ref).max() <= rel * np.abs(alpha_ref).max()
+        for name in ("x0_dot", "flux"):
+            args = (axis, g_ref, rows, k) if name == "x0_dot" else (g_ref, rows, k)
+            want = getattr(ref, name)(*args)
+            got = getattr(fast, name)(*((axis, g, rows, k) if name == "x0_dot" else (g, rows, k)))
+            scale = np.abs(b.x0).max() * np.abs(g_ref).sum()
+            assert np.abs(got - want).max() <= rel * scale, name
+    p, q = np.array([0.6, 0.8, 0.0]), np.array([0.0, 0.0, 1.0])
+    g_ref, g = ref.direction_gradient(p, q, D), fast.direction_gradient(p, q, D)
+    assert np.abs(g.g - g_ref).max() <= 1e-14 * terms     # (in float64 for both, as p @ X)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_compiled_forward_product_and_vertices_equal_numpys(kernels, dtype):
+    # Blender's Lattice modifier, as the binding's own (NumPy) deform computes it; a mesh partly
+    # outside the lattice, so the clamped taps repeat end points.
+    b, P = _problem(dtype)
+    assert b.n_outside > 0
+    D = P - b.lattice.rest_points
+    fast = kernels.CompiledSteps(b)
+    size = np.ptp(b.lattice.rest_points, 0).max()
+    rel = 1e-6 if dtype == np.float32 else 1e-13
+    assert np.abs(fast.verts(D) - b.deform(P)).max() <= rel * size
 
 
 @pytest.mark.parametrize("dtype,islands,axes", [(np.float32, False, "XYZ"), (np.float64, False, "XY"),

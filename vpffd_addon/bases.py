@@ -68,6 +68,18 @@ def _bernstein(t, degree):
     return b
 
 
+def axis_cells(x, n, lo, hi):
+    """The cell of a local (four-tap) axis with `n` >= 2 points spanning [lo, hi] that each
+    coordinate `x` (V,) lies in, unclamped: ``(i (V,) int64, t (V,) float64)`` with
+    ``x = lo + (i + t) du``, t in [0, 1). Blender's taps are grid points i-1..i+2, clamped to the grid.
+    Beyond three cells outside, i stops (all taps clamp to the end point there anyway), so i lies in
+    [-3, n + 2]."""
+    du = (hi - lo) / (n - 1)
+    u = np.clip((np.asarray(x, dtype=np.float64) - lo) / du, -3.0, n + 2.0)
+    i = np.floor(u)
+    return i.astype(np.int64), u - i
+
+
 def axis_taps(x, n, lo, hi, kind, derivative=False):
     """Taps of one lattice axis for coordinates `x` (V,) in lattice space.
 
@@ -98,11 +110,7 @@ def axis_taps(x, n, lo, hi, kind, derivative=False):
         dw *= (n - 1) / width * inside[:, None]  # clamped outside: the map is constant there
         return first, w, dw
     du = (hi - lo) / (n - 1)
-    # Clipping u keeps floor() in range; beyond two cells outside all taps clamp to one point anyway.
-    u = np.clip((x - lo) / du, -3.0, n + 2.0)
-    i = np.floor(u)
-    t = u - i
-    i = i.astype(np.int64)
+    i, t = axis_cells(x, n, lo, hi)
     w, dw = _local_weights(t, kind, derivative)
     first = np.clip(i, 0, n - 1) - 1
     # Blender's taps are i-1..i+2 clamped to the grid. Inside (1 <= i <= n-3) they are first..first+3

@@ -9,7 +9,7 @@ vertex, to hold memory near 100 bytes per vertex in float32.
 import numpy as np
 
 from . import compiled, parallel
-from .bases import CARDINAL_FC, axis_taps
+from .bases import CARDINAL_FC, axis_cells, axis_taps
 from .jacobian import lattice_jacobian_det
 from .layout_kernels import KIND_CODES
 from .lattice import Lattice
@@ -218,9 +218,12 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     kernels = compiled.bind_kernels(lattice) if use_compiled else None
     taps = _lattice_taps(lattice, verts, kernels)
 
-    # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded).
-    cells = [first + 1 for first, _ in taps]          # first >= -1
-    dims = [n + 1 for n in lattice.shape]
+    # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded). The
+    # cell is the unclamped one of a local axis (in [-3, n + 2]): vertices outside the lattice
+    # whose clamped taps differ do not share a run, so a run's slots share their taps exactly
+    # (what the compiled solve needs, `solve_kernels`). A Bernstein or one-point axis has one.
+    cells = [tap[2] + 3 if len(tap) > 2 else np.zeros(V, np.int64) for tap in taps]
+    dims = [n + 6 if len(tap) > 2 else 1 for n, tap in zip(lattice.shape, taps)]
     cell = (cells[2] * dims[1] + cells[1]) * dims[0] + cells[0]
     n_cells = dims[0] * dims[1] * dims[2]
     key = cell if b.n_islands == 1 else labels * n_cells + cell
@@ -237,14 +240,20 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     n_slots = n_blocks * bs
     b.block_size = bs
     runs = (order, run_start, run_len, first_block)
+    local = all(len(tap) > 2 for tap in taps)
     if kernels:
         faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels)
     else:
         _numpy_blocks(b, taps, s, runs, n_blocks)
+        if local:
+            b.params = np.zeros((4, n_slots), b.dtype)
+            for a in range(3):
+                b.params[a, b.slot] = taps[a][3]
+            b.params[3, b.slot] = s
         faces = None
 
     # Control points of each run (blocks of a run share them), from the run's first vertex.
-    Ku, Kv, Kw = (w.shape[1] for _, w in taps)
+    Ku, Kv, Kw = (tap[1].shape[1] for tap in taps)
     run_vertex = order[run_start]
     grid = [np.clip(taps[a][0][run_vertex, None] + np.arange(K), 0, lattice.shape[a] - 1)
             for a, K in enumerate((Ku, Kv, Kw))]
@@ -255,6 +264,9 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.run_first_block = first_block
     b.run_island = labels[run_vertex]
     b.block_island = b.run_island[b.block_run]
+    if local:
+        # The unclamped cell of every block (`solve_kernels` gathers its taps from it).
+        b.block_cell = np.stack([taps[a][2][run_vertex] for a in range(3)], 1)[b.block_run]
 
     finish(b, rel, tris, labels, n_slots, faces)
     b.block_parts = parallel.split(n_blocks, V)
@@ -263,8 +275,9 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
 
 
 def _lattice_taps(lattice, verts, kernels, threads=True):
-    """[(first (V,), w (V, K))] of the three axes (`bases.axis_taps`), by the compiled kernel when
-    `kernels` are given (every axis then has four taps); on the worker threads for a big mesh
+    """The taps of the three axes (`bases.axis_taps`): (first (V,), w (V, K)) and, for a local
+    axis, also its unclamped cell (V,) and t (V,) (`bases.axis_cells`). By the compiled kernel
+    when `kernels` are given (every axis is then local); on the worker threads for a big mesh
     unless `threads` is False (when called from one of them)."""
     cols = np.ascontiguousarray(verts.T)
     V = len(verts)
@@ -272,11 +285,14 @@ def _lattice_taps(lattice, verts, kernels, threads=True):
     def taps_of(a):
         n, lo, hi, kind = lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a]
         if not kernels:
-            return axis_taps(cols[a], n, lo, hi, kind)
-        first, w = np.empty(V, np.int64), np.empty((V, 4))
+            first, w = axis_taps(cols[a], n, lo, hi, kind)
+            if n == 1 or kind == "BEZIER":
+                return first, w
+            return (first, w) + axis_cells(cols[a], n, lo, hi)
+        first, w, cell, t = np.empty(V, np.int64), np.empty((V, 4)), np.empty(V, np.int64), np.empty(V)
         kernels["axis_taps"](cols[a], n, float(lo), float(hi), KIND_CODES[kind], CARDINAL_FC.get(kind, 0.0),
-                             first, w)
-        return first, w
+                             first, w, cell, t)
+        return first, w, cell, t
     # The three axes are independent and NumPy and the kernels release the GIL: big meshes use
     # the worker threads.
     if threads and V >= parallel.MIN_VERTS_PER_PART:
@@ -324,6 +340,7 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
     kernels["slots"](*runs, bs, b.slot, sorted_slot)
     b.wuv, b.ww = np.zeros((n_blocks, 16, bs), dt), np.zeros((n_blocks, 4, bs), dt)
     b.slot_influence = np.zeros(n_slots, dt)
+    b.params = np.zeros((4, n_slots), dt)
 
     def weights():
         order = runs[0]
@@ -331,6 +348,7 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
         shift = bs.bit_length() - 1                                # block sizes are powers of two
         kernels["block_weights"](sorted_slot, shift, taps[0][1], taps[1][1], taps[2][1], s[order],
                                  b.wuv, b.ww, b.slot_influence, np.empty(8, dt))
+        kernels["slot_params"](sorted_slot, taps[0][3], taps[1][3], taps[2][3], s[order], b.params)
     jobs = [lambda: slot_faces(b, rel, n_slots, kernels), weights]
     if b.n_verts >= parallel.MIN_VERTS_PER_PART:
         return parallel.run(lambda job: job(), jobs)[0]

@@ -20,9 +20,10 @@ def define(njit):
     """The kernels, compiled by `njit`: {name: function}."""
 
     @njit
-    def axis_taps(x, n, lo, hi, kind, fc, first, w):
+    def axis_taps(x, n, lo, hi, kind, fc, first, w, cell, tt):
         # One axis of `bases.axis_taps` for a local kind (n >= 2): first (V,) int64 and w (V, 4)
         # float64 written in place. Blender's clamped taps are folded onto offsets 0..3 of `first`.
+        # Also the unclamped cell (V,) int64 and t (V,) float64 of `bases.axis_cells`.
         du = (hi - lo) / (n - 1)
         top = n + 2.0
         sixth = 1.0 / 6.0
@@ -36,6 +37,8 @@ def define(njit):
             fi = np.floor(u)
             t = u - fi
             i = int(fi)
+            cell[v] = i
+            tt[v] = t
             if kind == 0:
                 w0, w1, w2, w3 = 0.0, 1.0 - t, t, 0.0
             elif kind == 2:

@@ -233,16 +233,17 @@ def test_overlay_draws_the_corrected_cage_and_folds_are_counted(ext):
     assert np.abs(points - user).max() > 1e-3                 # the correction moved the cage
     assert np.abs((points - user)[:, 2]).max() <= 1e-6        # XY: no vertical motion
     assert eng.stats(ball)["folds"] == 0
-    # Fold the cage: one layer of points pushed through the other.
+    # Fold the cage: one end of its top layer pushed through the bottom (the whole top layer
+    # pushed through would be a mirror, which folds nothing).
     co = _co(cage_ob)
-    top = co[:, 2] > co[:, 2].mean()
+    top = (co[:, 2] > co[:, 2].mean()) & (co[:, 0] > co[:, 0].mean())
     co[top, 2] = co[:, 2].min() - 0.5
     ball.vpffd.axes = "NONE"
     cage_ob.shape_key_clear()
     cage_ob.data.vertices.foreach_set("co", co.astype(np.float32).ravel())
     cage_ob.data.update()
     bpy.context.scene.frame_set(1)
-    assert eng.stats(ball)["folds"] == len(ball.data.vertices)
+    assert 0 < eng.stats(ball)["folds"] < len(ball.data.vertices), eng.stats(ball)
 
 
 def test_cage_follows_edit_mode_and_an_armature(ext):

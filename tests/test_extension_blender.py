@@ -373,9 +373,12 @@ def test_open_mesh_single_point_axis_and_outside_vertices_warn(ext):
     assert eng.stats(ob)["closed"] is False
 
 
-def test_folded_lattice_reports_inverted_vertices(ext):
+def test_folded_lattice_reports_inverted_vertices_and_a_mirror_none(ext):
+    """A mirror turns every vertex inside out alike: it mirrors space and folds nothing. Half the
+    lattice mirrored onto the other half folds it: the vertices turned against the rest are
+    inverted."""
     eng = _engine(ext)
-    ball = _sphere(subdivisions=2)
+    ball = _sphere(subdivisions=2, radius=0.45)
     lat = _lattice(shape=(2, 2, 2), interp="KEY_LINEAR", scale=2.0)
     co = _points(lat)
     co[:, 0] *= -1.0                                            # mirror: the map turns inside out
@@ -383,8 +386,18 @@ def test_folded_lattice_reports_inverted_vertices(ext):
     ball.vpffd.lattice = lat
     ball.vpffd.axes = "NONE"
     warnings = eng.bind(ball, bpy.context.evaluated_depsgraph_get())
-    assert eng.stats(ball)["folds"] == len(ball.data.vertices)
-    assert any("inverted" in w for w in warnings)
+    assert eng.stats(ball)["folds"] == 0 and eng.stats(ball)["mirrored"]
+    assert not any("inverted" in w for w in warnings)
+    fold = _lattice(shape=(2, 2, 3), interp="KEY_LINEAR", scale=1.0)
+    fold.scale = (1.0, 1.0, 0.5)
+    co = _points(fold)
+    co[co[:, 2] > 0, 0] *= -1.0          # the top layer mirrored in X: the upper half turns over
+    fold.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
+    ball.vpffd.lattice = fold
+    warnings = eng.bind(ball, bpy.context.evaluated_depsgraph_get())
+    folds = eng.stats(ball)["folds"]
+    assert 0 < folds < len(ball.data.vertices) and not eng.stats(ball)["mirrored"]
+    assert any(f"{folds:,} inverted" in w for w in warnings)
 
 
 def test_saved_file_reopens_and_keeps_working(ext, tmp_path):

@@ -181,9 +181,11 @@ def _archive_manifest(path):
         return None
 
 
-def remove_other_versions(folder, manifest):
+def remove_stale(folder, manifest, any_platform=False):
     """Delete the packages of this extension in `folder` whose version is not `manifest`'s (the
-    index must list one version only); other extensions' packages stay. Returns what went."""
+    index must list one version only) and, unless `any_platform`, those for any platform (an
+    earlier layout kept one beside the platform packages); other extensions' packages stay.
+    Returns what went."""
     gone = []
     if not os.path.isdir(folder):
         return gone
@@ -192,7 +194,9 @@ def remove_other_versions(folder, manifest):
         if not name.endswith(".zip") or not os.path.isfile(path):
             continue
         other = _archive_manifest(path)
-        if other and other.get("id") == manifest["id"] and other.get("version") != manifest["version"]:
+        if not other or other.get("id") != manifest["id"]:
+            continue
+        if other.get("version") != manifest["version"] or not (any_platform or other.get("platforms")):
             os.remove(path)
             gone.append(path)
     return gone
@@ -243,9 +247,9 @@ def build(platforms, pythons=None, out=DIST, universal=True, numpy_only=NUMPY_ON
     os.makedirs(out, exist_ok=True)
     made = []
     if universal:
-        remove_other_versions(os.path.join(out, UNIVERSAL), manifest)
+        remove_stale(os.path.join(out, UNIVERSAL), manifest, any_platform=True)
         made.append(eh.build_extension_zip(root, os.path.join(out, UNIVERSAL)))
-    remove_other_versions(out, manifest)
+    remove_stale(out, manifest)
     if platforms:
         made += build_split(wheels, platforms, out, root)
     if numpy_only:

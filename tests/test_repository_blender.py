@@ -162,8 +162,20 @@ def test_publishing_replaces_the_older_version_and_keeps_other_extensions(tmp_pa
     with zipfile.ZipFile(other, "w") as zf:
         zf.writestr("blender_manifest.toml", 'id = "another_extension"\nversion = "1.0.0"\n')
     new = _next_patch(OLD)
-    package.remove_other_versions(str(tmp_path), {"id": EXT_ID, "version": new})
+    package.remove_stale(str(tmp_path), {"id": EXT_ID, "version": new})
     assert sorted(os.listdir(tmp_path)) == ["another_extension-1.0.0.zip", "index.html", "index.json"]
+
+
+def test_a_package_for_any_platform_left_beside_the_platform_ones_goes(tmp_path):
+    """Where an earlier `./dev package` left the universal package in the repository's folder,
+    the next one moves it to universal/ instead of refusing the index."""
+    made = package.build([], out=str(tmp_path))
+    shutil.copy2(made[0], tmp_path)
+    again = package.build([], out=str(tmp_path))
+    assert again == made
+    entries = read_index(tmp_path)["data"]
+    assert entries and all(e.get("platforms") for e in entries)
+    assert not (tmp_path / os.path.basename(made[0])).exists()
 
 
 # ------------------------------------------------------------------------------ Preferences

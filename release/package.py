@@ -2,9 +2,10 @@
 the index that makes `dist/` an extensions repository a studio serves over HTTP or as files.
 
     ./dev package                  # dist/: one package per platform with numba's wheels, a
-                                   # NumPy-only one for each platform numba has none for,
-                                   # index.json and index.html; dist/universal/: a NumPy-only
-                                   # package for any platform, to install from disk
+                                   # NumPy-only one for each platform (or Blender before 5.1 on
+                                   # Windows on ARM) numba has none for, index.json and
+                                   # index.html; dist/universal/: a NumPy-only package for any
+                                   # platform, to install from disk
     ./dev package --platform linux-x64 --python 3.13   # only what a test needs
     ./dev package --lock           # download every wheel once and write release/wheels.lock
 
@@ -27,6 +28,7 @@ the index does not read.
 import argparse
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -41,7 +43,7 @@ from tests import extension_harness as eh  # noqa: E402  (Blender's builder, thr
 
 PINS = ("numba==0.68.1", "llvmlite==0.50.0")
 #: Blender's platform names -> (pip platform tag, Python versions numba 0.68.1 has wheels for).
-#: No macos-x64 wheels exist for it: that platform gets the universal NumPy-only package.
+#: No macos-x64 wheels exist for it: that platform gets a NumPy-only package.
 PLATFORMS = {
     "linux-x64": ("manylinux_2_28_x86_64", ("3.11", "3.13", "3.14")),
     "windows-x64": ("win_amd64", ("3.11", "3.13", "3.14")),
@@ -51,6 +53,10 @@ PLATFORMS = {
 #: Blender platforms with no numba wheels above (Intel Macs; ARM Linux, where Debian builds Blender):
 #: each gets a NumPy-only package in the repository.
 NUMPY_ONLY = ("macos-x64", "linux-arm64")
+#: Official Blender builds embed Python 3.11 up to 5.0 and 3.13 from this version on. A platform
+#: whose numba wheels lack 3.11 (Windows on ARM) gets its numba package from this version on and a
+#: NumPy-only package for the Blender versions before it.
+PYTHON_313_FROM = "5.1.0"
 #: Subfolder of the output for the NumPy-only package without platforms (any platform, any Python).
 UNIVERSAL = "universal"
 LOCK = os.path.join(HERE, "wheels.lock")
@@ -134,18 +140,26 @@ def write_lock(path=LOCK):
     return path
 
 
-def _manifest_with(text, wheels, platforms):
+def _manifest_with(text, wheels, platforms, blender_min=None, blender_max=None):
     """The committed manifest's text with `wheels` (when there are any) and `platforms` added
-    (top-level keys, before the first table)."""
+    (top-level keys, before the first table), and its Blender versions narrowed where given
+    (`blender_min` replaces blender_version_min; `blender_max`, exclusive, is added)."""
     lines = ["wheels = [", *[f'  "./wheels/{os.path.basename(w)}",' for w in wheels], "]"] if wheels else []
-    lines += ["platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]", ""]
+    lines += ["platforms = [" + ", ".join(f'"{p}"' for p in platforms) + "]"]
+    if blender_max:
+        lines.append(f'blender_version_max = "{blender_max}"')
     head, sep, rest = text.partition("\n[")
-    return head.rstrip("\n") + "\n\n" + "\n".join(lines) + sep + rest
+    if blender_min:
+        head, n = re.subn(r'(?m)^blender_version_min = "[^"]*"$', f'blender_version_min = "{blender_min}"', head)
+        if n != 1:
+            raise PackageError("the manifest has no blender_version_min line to narrow")
+    return head.rstrip("\n") + "\n\n" + "\n".join(lines + [""]) + sep + rest
 
 
-def stage(wheels, platforms, folder, root=ROOT):
+def stage(wheels, platforms, folder, root=ROOT, **versions):
     """A source folder for Blender's builder: the extension's files in `root` as its manifest
-    packs them, the wheels under ./wheels/, and a manifest that lists both."""
+    packs them, the wheels under ./wheels/, and a manifest that lists both (`versions`: Blender
+    versions to narrow it to, as `_manifest_with` takes them)."""
     if os.path.isdir(folder):
         shutil.rmtree(folder)
     for rel in eh.planned_files(root):
@@ -155,7 +169,7 @@ def stage(wheels, platforms, folder, root=ROOT):
     for w in wheels:
         shutil.copy2(w, os.path.join(folder, "wheels", os.path.basename(w)))
     with open(os.path.join(root, "blender_manifest.toml")) as fh:
-        text = _manifest_with(fh.read(), wheels, platforms)
+        text = _manifest_with(fh.read(), wheels, platforms, **versions)
     tomllib.loads(text)                                   # still TOML
     with open(os.path.join(folder, "blender_manifest.toml"), "w") as fh:
         fh.write(text)
@@ -166,9 +180,11 @@ def locked_wheels(platforms, pythons, lock):
     """The checked wheels for `platforms`, limited to `pythons` (None: every version numba has)."""
     wheels = []
     for platform in platforms:
-        for python in PLATFORMS[platform][1]:
-            if pythons is None or python in pythons:
-                wheels += checked_wheels(platform, python, lock)
+        chosen = [p for p in PLATFORMS[platform][1] if pythons is None or p in pythons]
+        if not chosen:
+            raise PackageError(f"numba has no {platform} wheels for Python {', '.join(pythons)}")
+        for python in chosen:
+            wheels += checked_wheels(platform, python, lock)
     return wheels
 
 
@@ -202,10 +218,11 @@ def remove_stale(folder, manifest, any_platform=False):
     return gone
 
 
-def build_split(wheels, platforms, out, root=ROOT):
-    """One package per platform from `root` with `wheels` (none: NumPy only), by Blender's
-    builder with --split-platforms; their paths."""
-    folder = stage(wheels, platforms, os.path.join(BUILD, "source"), root)
+def build_split(wheels, platforms, out, root=ROOT, blender_min=None):
+    """One package per platform from `root` with `wheels` (none: NumPy only), for Blender from
+    `blender_min` on (None: the manifest's), by Blender's builder with --split-platforms; their
+    paths."""
+    folder = stage(wheels, platforms, os.path.join(BUILD, "source"), root, blender_min=blender_min)
     rc, messages = eh.run_extension_cli(
         "build", "--source-dir", folder, "--output-dir", out, "--split-platforms",
         "--valid-tags", eh.blender_tags_file(), timeout=1800)
@@ -220,6 +237,27 @@ def build_split(wheels, platforms, out, root=ROOT):
             raise PackageError(f"the builder made no {os.path.basename(path)}: {messages}")
         made.append(path)
     return made
+
+
+def build_numpy_before(platform, version, out, root=ROOT):
+    """A NumPy-only package of `root` for `platform` and the Blender versions before `version`,
+    where that platform's numba package starts; its path."""
+    manifest = eh.read_manifest(root)
+    folder = stage([], [platform], os.path.join(BUILD, "source"), root, blender_max=version)
+    path = os.path.join(out, f"{manifest['id']}-{manifest['version']}-{platform.replace('-', '_')}"
+                             f"-before-{version}.zip")
+    rc, messages = eh.run_extension_cli(
+        "build", "--source-dir", folder, "--output-filepath", path,
+        "--valid-tags", eh.blender_tags_file(), timeout=600)
+    if eh._failed(rc, messages) or not os.path.isfile(path):
+        raise PackageError("Blender's builder refused the package:\n"
+                           + "\n".join(f"{k}: {m}" for k, m in messages))
+    return path
+
+
+def without_python_311(platforms):
+    """Those of `platforms` (with numba wheels) that numba has no Python 3.11 wheels for."""
+    return [p for p in platforms if "3.11" not in PLATFORMS[p][1]]
 
 
 def write_index(folder):
@@ -238,11 +276,16 @@ def build(platforms, pythons=None, out=DIST, universal=True, numpy_only=NUMPY_ON
     index over `out`; returns the packages' paths. `platforms`: Blender platform names that get
     numba's wheels; `pythons`: limit the wheels to these Python versions (None: every version
     numba has); `numpy_only`: platforms that get a package without wheels; `universal`: also the
-    any-platform package, in out/universal/."""
+    any-platform package, in out/universal/. A platform without numba's Python 3.11 wheels gets
+    its numba package for Blender from PYTHON_313_FROM on, and a NumPy-only one before."""
     clash = set(platforms) & set(numpy_only)
     if clash:
         raise PackageError(f"{sorted(clash)} would get two packages")
-    wheels = locked_wheels(platforms, pythons, read_lock())    # before anything is written
+    late = without_python_311(platforms)
+    early = [p for p in platforms if p not in late]
+    lock = read_lock()
+    wheels = {tuple(group): locked_wheels(group, pythons, lock)     # before anything is written
+              for group in (early, late)}
     manifest = eh.read_manifest(root)
     os.makedirs(out, exist_ok=True)
     made = []
@@ -250,10 +293,13 @@ def build(platforms, pythons=None, out=DIST, universal=True, numpy_only=NUMPY_ON
         remove_stale(os.path.join(out, UNIVERSAL), manifest, any_platform=True)
         made.append(eh.build_extension_zip(root, os.path.join(out, UNIVERSAL)))
     remove_stale(out, manifest)
-    if platforms:
-        made += build_split(wheels, platforms, out, root)
+    if early:
+        made += build_split(wheels[tuple(early)], early, out, root)
+    if late:
+        made += build_split(wheels[tuple(late)], late, out, root, blender_min=PYTHON_313_FROM)
     if numpy_only:
         made += build_split([], numpy_only, out, root)
+    made += [build_numpy_before(p, PYTHON_313_FROM, out, root) for p in late]
     for path in made:
         eh.validate_manifest(path)
     write_index(out)

@@ -99,3 +99,29 @@ def test_numba_from_the_package_runs_in_blender(linux_package, tmp_path):
     for module in ("file", "llvmlite"):
         assert os.path.realpath(report[module]).startswith(os.path.realpath(str(user))), \
             (module, "comes from the wheels Blender installed for the extension", report)
+
+
+#: Official Blender builds and the Python each embeds (Debian's 5.2 embeds 3.14).
+OFFICIAL = (((4, 2, 0), (3, 11, 0)), ((4, 5, 0), (3, 11, 0)), ((5, 0, 0), (3, 11, 0)),
+            ((5, 1, 0), (3, 13, 0)), ((5, 3, 0), (3, 13, 0)))
+
+
+def test_every_blender_on_arm_windows_and_the_numpy_platforms_finds_one_package(tmp_path):
+    """numba has only Python 3.13 wheels for Windows on ARM: its package serves Blender from 5.1
+    on, a NumPy-only one the Blender versions before; Blender's own filter finds exactly one
+    package in the index for each official Blender there and on the NumPy-only platforms."""
+    package.build(["windows-arm64"], out=str(tmp_path), universal=False)
+    with open(tmp_path / "index.json") as fh:
+        entries = json.load(fh)["data"]
+    ext = eh._blender_ext_module()
+    for platform in ("windows-arm64", *package.NUMPY_ONLY):
+        for blender, python in OFFICIAL:
+            found = [e["archive_url"] for e in entries if not ext.repository_filter_skip(
+                e, filter_blender_version=blender, filter_platform=platform,
+                filter_python_version=python, skip_message_fn=None, error_fn=print)]
+            assert len(found) == 1, (platform, blender, found)
+            if platform == "windows-arm64":
+                with zipfile.ZipFile(tmp_path / found[0][2:]) as zf:
+                    wheels = [n for n in zf.namelist() if n.startswith("wheels/")]
+                assert bool(wheels) == (python[:2] == (3, 13)), (blender, found)
+

@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 import vpffd_addon as vp
-from vpffd_addon import compiled, parallel
+from vpffd_addon import compiled
 from vpffd_addon.steps import NumpySteps
 
 

@@ -9,9 +9,8 @@ vertex, to hold memory near 100 bytes per vertex in float32.
 import numpy as np
 
 from . import compiled, parallel
-from .bases import CARDINAL_FC, axis_cells, axis_taps
+from .bases import axis_cells, axis_taps, tap_count
 from .jacobian import lattice_jacobian_det
-from .layout_kernels import KIND_CODES
 from .lattice import Lattice
 from .mesh import Topology, check_verts
 from .solve import solve
@@ -64,8 +63,26 @@ class BindingBase:
     @property
     def nbytes(self):
         """Bytes held by the arrays of this binding."""
-        arrays = [a for a in vars(self).values() if isinstance(a, np.ndarray)] + self.corner_parts
+        arrays = [a for a in vars(self).values() if isinstance(a, np.ndarray)] + vars(self).get("corner_parts", [])
+        arrays += [a for a in vars(self).get("_incidence", ()) if isinstance(a, np.ndarray)]
         return int(sum(a.nbytes for a in arrays))
+
+    #: What the NumPy products need beyond the compiled ones, made on first use (a binding laid out
+    #: by the compiled kernels never needs them unless NumPy's steps, the GPU path, pins or the
+    #: Jacobian ask): the faces as (3, F_part) slot arrays per worker part, and (for a lattice)
+    #: the stored weights.
+    _LAZY = ("corner_parts",)
+
+    def __getattr__(self, name):
+        # Only called for attributes not set: make a lazy one, once.
+        if name in type(self)._LAZY:
+            self._materialise(name)
+            return vars(self)[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def _materialise(self, name):
+        if name == "corner_parts":
+            self.corner_parts = corner_parts(self)
 
     def _gather(self, x):
         """Coordinates x (n_slots,) at the face corners, one (3, F_part) array per face part."""
@@ -129,6 +146,16 @@ class BindingBase:
 
 class Binding(BindingBase):
     """A mesh bound to a `Lattice`; made by `bind`. Coordinates are in lattice space."""
+
+    _LAZY = BindingBase._LAZY + ("wuv", "ww")
+
+    def _materialise(self, name):
+        if name in ("wuv", "ww"):
+            verts, s = self._source
+            _numpy_weights(self, _lattice_taps(self.lattice, verts, None), s, self.block_cell.shape[0] if
+                           hasattr(self, "block_cell") else self.block_run.shape[0])
+        else:
+            super()._materialise(name)
 
     @property
     def slot_island(self):
@@ -241,8 +268,9 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.block_size = bs
     runs = (order, run_start, run_len, first_block)
     local = all(len(tap) > 2 for tap in taps)
+    b._source = (verts, s)              # for what is made on first use (`_LAZY`)
     if kernels:
-        faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels)
+        faces = _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels)
     else:
         _numpy_blocks(b, taps, s, runs, n_blocks)
         if local:
@@ -253,9 +281,11 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
         faces = None
 
     # Control points of each run (blocks of a run share them), from the run's first vertex.
-    Ku, Kv, Kw = (tap[1].shape[1] for tap in taps)
+    Ku, Kv, Kw = (tap_count(n, kind) for n, kind in zip(lattice.shape, lattice.interpolation))
     run_vertex = order[run_start]
-    grid = [np.clip(taps[a][0][run_vertex, None] + np.arange(K), 0, lattice.shape[a] - 1)
+    firsts = [tap[0][run_vertex] if tap[0] is not None else np.clip(tap[2][run_vertex], 0, n - 1) - 1
+              for tap, n in zip(taps, lattice.shape)]
+    grid = [np.clip(firsts[a][:, None] + np.arange(K), 0, lattice.shape[a] - 1)
             for a, K in enumerate((Ku, Kv, Kw))]
     nu, nv, _ = lattice.shape
     b.run_idx = ((grid[2][:, :, None, None] * nv + grid[1][:, None, :, None]) * nu
@@ -276,9 +306,9 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
 
 def _lattice_taps(lattice, verts, kernels, threads=True):
     """The taps of the three axes (`bases.axis_taps`): (first (V,), w (V, K)) and, for a local
-    axis, also its unclamped cell (V,) and t (V,) (`bases.axis_cells`). By the compiled kernel
-    when `kernels` are given (every axis is then local); on the worker threads for a big mesh
-    unless `threads` is False (when called from one of them)."""
+    axis, also its unclamped cell (V,) and t (V,) (`bases.axis_cells`). With `kernels` (every
+    axis is then local) only the cells and t, by the compiled kernel. On the worker threads for a
+    big mesh unless `threads` is False (when called from one of them)."""
     cols = np.ascontiguousarray(verts.T)
     V = len(verts)
 
@@ -289,10 +319,11 @@ def _lattice_taps(lattice, verts, kernels, threads=True):
             if n == 1 or kind == "BEZIER":
                 return first, w
             return (first, w) + axis_cells(cols[a], n, lo, hi)
-        first, w, cell, t = np.empty(V, np.int64), np.empty((V, 4)), np.empty(V, np.int64), np.empty(V)
-        kernels["axis_taps"](cols[a], n, float(lo), float(hi), KIND_CODES[kind], CARDINAL_FC.get(kind, 0.0),
-                             first, w, cell, t)
-        return first, w, cell, t
+        # The compiled solve computes the weights itself: only the cells and t (`first` and the
+        # weights are None; a run's first tap is clip(cell, 0, n - 1) - 1).
+        cell, t = np.empty(V, np.int64), np.empty(V)
+        kernels["axis_cells"](cols[a], n, float(lo), float(hi), cell, t)
+        return None, None, cell, t
     # The three axes are independent and NumPy and the kernels release the GIL: big meshes use
     # the worker threads.
     if threads and V >= parallel.MIN_VERTS_PER_PART:
@@ -311,6 +342,15 @@ def _numpy_blocks(b, taps, s, runs, n_blocks):
     slot = np.empty(V, np.int64)
     slot[order] = (first_block[run_of] + local // bs) * bs + local % bs
     b.slot = slot
+    _numpy_weights(b, taps, s, n_blocks)
+    b.slot_influence = np.zeros(n_blocks * bs, b.dtype)
+    b.slot_influence[slot] = s
+
+
+def _numpy_weights(b, taps, s, n_blocks):
+    """Fill b.wuv and b.ww (the stored weights of NumPy's products) from the per-vertex taps and
+    influences s (V,), once b.slot is known."""
+    V, bs, slot = b.n_verts, b.block_size, b.slot
     n_slots = n_blocks * bs
     Ku, Kv = taps[0][1].shape[1], taps[1][1].shape[1]
     # Stored per block as (K, block) so that products run along contiguous vertex rows. Built by
@@ -326,33 +366,25 @@ def _numpy_blocks(b, taps, s, runs, n_blocks):
     Wu, Wv = per_block(taps[0][1]), per_block(taps[1][1])
     b.wuv = (Wv[:, :, None, :] * Wu[:, None, :, :]).reshape(n_blocks, Kv * Ku, bs)
     b.ww = per_block(taps[2][1] * s[:, None])
-    b.slot_influence = np.zeros(n_slots, b.dtype)
-    b.slot_influence[slot] = s
 
 
-def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
-    """`_numpy_blocks` and `slot_faces` by the compiled kernels: the slots first, then the block
-    weights beside the faces (two worker threads for a big mesh; the kernels release the GIL).
-    The weights come from the taps of the vertices taken again in sorted order (the same values,
-    read in order instead of gathered). Returns `slot_faces`'s result."""
+def _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels):
+    """The slots, the per-slot parameters of the compiled solve (`params`) and `slot_faces` by the
+    compiled kernels; NumPy's stored weights are left to be made if something asks for them
+    (`Binding._materialise`). Returns `slot_faces`'s result."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
     b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
     kernels["slots"](*runs, bs, b.slot, sorted_slot)
-    b.wuv, b.ww = np.zeros((n_blocks, 16, bs), dt), np.zeros((n_blocks, 4, bs), dt)
     b.slot_influence = np.zeros(n_slots, dt)
     b.params = np.zeros((4, n_slots), dt)
 
-    def weights():
-        order = runs[0]
-        taps = _lattice_taps(lattice, verts[order], kernels, threads=False)
-        shift = bs.bit_length() - 1                                # block sizes are powers of two
-        kernels["block_weights"](sorted_slot, shift, taps[0][1], taps[1][1], taps[2][1], s[order],
-                                 b.wuv, b.ww, b.slot_influence, np.empty(8, dt))
-        kernels["slot_params"](sorted_slot, taps[0][3], taps[1][3], taps[2][3], s[order], b.params)
-    jobs = [lambda: slot_faces(b, rel, n_slots, kernels), weights]
+    def params():
+        kernels["slot_params"](b.slot, taps[0][3], taps[1][3], taps[2][3], s, b.params, b.slot_influence)
+    jobs = [lambda: slot_faces(b, rel, n_slots, kernels), params]
     if b.n_verts >= parallel.MIN_VERTS_PER_PART:
         return parallel.run(lambda job: job(), jobs)[0]
     return [job() for job in jobs][0]
+
 
 def stable_order(keys):
     """np.argsort(keys, kind="stable") for non-negative integer keys below 2**32, as two passes of
@@ -408,50 +440,47 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
 
 
 def slot_faces(b, rel, n_slots, kernels=None):
-    """The rest coordinates in slot order and the faces, once `b.slot` (V,) is known: sets b.x0
-    and b.corner_parts, and returns (face_vol (F,), sums (2, n_islands)): the faces' float64 volume
-    terms in their stored order, and per island their sum and the sum of their absolute values.
-    By the compiled layout kernels when `kernels` are given."""
-    slot, V = b.slot, b.n_verts
-    # Rest coordinates in slot order: float64 for the faces' volume terms below, and in the
-    # binding's precision as x0 (the same rounding as storing them straight into it).
-    # Faces as (3, F) slots, ordered by the block of their lowest slot so that gathers walk
-    # memory forwards (a stable sort: ties keep the faces' own order, whatever NumPy's algorithm).
-    # Everything face-wise is kept as (3, F) rows: gathers of whole rows are several times faster
-    # than gathers of (F, 3) rows.
+    """The rest coordinates in slot order and the faces' volumes (from the coordinates relative to
+    the volume origins `rel` (V, 3)), once `b.slot` (V,) is known: sets b.x0 and returns (face_vol (F,), sums (2, n_islands)): the faces' float64 volume terms in
+    their own order, and per island their sum and the sum of their absolute values. By the
+    compiled layout kernels when `kernels` are given (bit for bit the same)."""
+    slot = b.slot
+    # Rest coordinates in slot order in the binding's precision (the same rounding as storing the
+    # float64 ones straight into it); the volume terms from the float64 ones in vertex order.
     tris_t = b.topology.tris_t
     F = tris_t.shape[1]
-    face_parts = parallel.split(F, V)
-    coords = np.zeros((3, n_slots))
+    face_vol = np.empty(F)
+    face_parts = parallel.split(F, b.n_verts)
     if kernels:
         b.x0 = np.zeros((3, n_slots), b.dtype)
-        kernels["slot_coords"](slot, rel, coords, b.x0)
-        edges = np.array([fs.start for fs in face_parts] + [F], np.int64)
-        corners, face_order, face_vol = np.empty(3 * F, np.int64), np.empty(F, np.int64), np.empty(F)
-        shift = b.block_size.bit_length() - 1                      # block sizes are powers of two
-        sums = np.zeros((2, b.n_islands))
-        kernels["face_layout"](slot, tris_t, shift, n_slots >> shift, coords, edges, corners, face_order,
-                               face_vol, b.topology.face_island, sums[0], sums[1])
-        b.corner_parts = [corners[3 * fs.start:3 * fs.stop].reshape(3, -1) for fs in face_parts]
-        return face_vol, sums
-    coords[:, slot] = rel.T
-    b.x0 = coords.astype(b.dtype)
-    corners = np.take(slot, tris_t)
+        kernels["slot_coords"](slot, rel, b.x0)
+        rel = np.ascontiguousarray(rel)
+        parallel.run(lambda fs: kernels["face_volumes"](rel, tris_t, face_vol, fs.start, fs.stop), face_parts)
+    else:
+        coords = np.zeros((3, n_slots))
+        coords[:, slot] = rel.T
+        b.x0 = coords.astype(b.dtype)
+        cols = np.ascontiguousarray(rel.T)
+
+        def volumes(fs):
+            face_vol[fs] = face_volumes(cols, tris_t[:, fs])
+        parallel.run(volumes, face_parts)
+    # Summed in the faces' own order (bincount is sequential), whatever laid the slots out.
+    island = b.topology.face_island
+    return face_vol, np.stack([np.bincount(island, face_vol, b.n_islands),
+                               np.bincount(island, np.abs(face_vol), b.n_islands)])
+
+
+def corner_parts(b):
+    """The faces as slot triples, one (3, F_part) array per worker part, ordered by the block of
+    their lowest slot so that NumPy's gathers walk memory forwards (a stable sort: ties keep the
+    faces' own order). Everything face-wise is kept as (3, F) rows: gathers of whole rows are
+    several times faster than gathers of (F, 3) rows."""
+    corners = np.take(b.slot, b.topology.tris_t)
     lowest = np.minimum(np.minimum(corners[0], corners[1]), corners[2])
     face_order = stable_order(lowest // getattr(b, "block_size", 1))
     corners = np.take(corners, face_order, axis=1)
-    b.corner_parts = [np.ascontiguousarray(corners[:, fs]) for fs in face_parts]
-    # The faces' volume terms, in float64 from the coordinates in slot order: the sorted faces'
-    # corners lie close together there, so the gathers stay in cache (about three times faster
-    # than gathering in the mesh's own vertex order).
-    face_vol = np.empty(F)
-
-    def volumes(k):
-        face_vol[face_parts[k]] = face_volumes(coords, b.corner_parts[k])
-    parallel.run(volumes, list(range(len(face_parts))))
-    face_island = b.topology.face_island[face_order]
-    return face_vol, np.stack([np.bincount(face_island, face_vol, b.n_islands),
-                               np.bincount(face_island, np.abs(face_vol), b.n_islands)])
+    return [np.ascontiguousarray(corners[:, fs]) for fs in parallel.split(corners.shape[1], b.n_verts)]
 
 
 def finish(b, rel, tris, labels, n_slots, faces=None):

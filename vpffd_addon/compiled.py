@@ -97,37 +97,13 @@ def _compile(numba, cache):
     njit_sums = numba.njit(cache=cache, nogil=True, fastmath=fast, error_model="numpy")
     inline = numba.njit(inline="always", fastmath=fast, error_model="numpy")
 
-    @njit
-    def gradient(xp, xq, corners, g):
-        # g[corner k of f] += p_m q_n - q_m p_n, (m, n) the face's other corners in cyclic order,
-        # products in the coordinates' precision, sums in float64 (as volume.gradient_component).
-        n_faces = corners.shape[1]
-        for k in range(3):
-            m = (k + 1) % 3
-            n = (k + 2) % 3
-            for f in range(n_faces):
-                cm = corners[m, f]
-                cn = corners[n, f]
-                c = xp[cm] * xq[cn] - xq[cm] * xp[cn]
-                g[corners[k, f]] += c
-        for i in range(g.shape[0]):
-            g[i] *= 1.0 / 6.0
-
-    return {"gradient": gradient, **layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline)}
+    return {**layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline)}
 
 
 def _smoke(kernels):
-    """Run each kernel once on a tiny problem of each precision (compiles them now, not in a
-    frame) and check it against the sum worked by hand."""
-    for dtype in (np.float32, np.float64):
-        g = np.zeros(4)
-        # One face (0, 1, 2) with p = (1, 0, 0) and q = (0, 2, 0) at its corners: the gradient at
-        # corner 0 is (p1 q2 - q1 p2) / 6 = 0, at corner 1 (p2 q0 - q2 p0) / 6 = 0, and at
-        # corner 2 (p0 q1 - q0 p1) / 6 = 2 / 6.
-        kernels["gradient"](np.array([1, 0, 0, 0], dtype), np.array([0, 2, 0, 0], dtype),
-                            np.array([[0], [1], [2]], np.int64), g)
-        if not np.allclose(g, [0.0, 0.0, 2.0 / 6.0, 0.0]):
-            raise RuntimeError(f"the volume gradient gave {g}")
+    """Run every kernel on tiny problems in both precisions (so that they compile now, not in a
+    frame) and check them: the layout kernels against NumPy bit for bit, the compiled solve against
+    the NumPy steps."""
     # The layout kernels must give NumPy's values bit for bit (binds are compared array by array
     # in the tests); here a few coordinates in, at the edges of and outside a small axis.
     x = np.array([-0.9, -0.5, -0.31, 0.0, 0.2, 0.5, 0.77, 1.6])
@@ -142,11 +118,59 @@ def _smoke(kernels):
                 raise RuntimeError(f"the {kind} taps of a {n}-point axis differ from NumPy's")
     coords = np.array([[0.0, 1.0, 0.0, 0.3], [0.0, 0.0, 1.0, 0.2], [0.0, 0.0, 0.0, 1.1]])
     tris_t = np.array([[0, 1, 3], [1, 2, 2], [2, 3, 0]], np.int64)
-    corners, order, vol = np.empty(9, np.int64), np.empty(3, np.int64), np.empty(3)
-    kernels["face_layout"](np.arange(4), tris_t, 2, 1, coords, np.array([0, 3]), corners, order, vol,
-                           np.zeros(3, np.int64), np.zeros(1), np.zeros(1))
-    if not (np.array_equal(corners.reshape(3, 3), tris_t) and np.array_equal(vol, face_volumes(coords, tris_t))):
+    vol = np.empty(3)
+    kernels["face_volumes"](np.ascontiguousarray(coords.T), tris_t, vol, 0, 3)
+    if not np.array_equal(vol, face_volumes(coords, tris_t)):
         raise RuntimeError("the faces' volume terms differ from NumPy's")
+    for dtype in (np.float32, np.float64):
+        _smoke_solve(kernels, dtype)
+
+
+def _smoke_solve(kernels, dtype):
+    """The kernels of a compiled solve on a tetrahedron in one block of a 4x4x4 lattice (three
+    kinds of axes, partly outside so that taps clamp), against the same sums in NumPy."""
+    from .bases import _local_weights
+    from .volume import gradient_component
+    kinds = ("BSPLINE", "CARDINAL", "LINEAR")
+    tris_t = np.array([[0, 0, 0, 1], [2, 1, 3, 2], [1, 3, 2, 3]], np.int64)
+    t = np.array([[0.1, 0.5, 0.9, 0.3], [0.7, 0.2, 0.4, 0.6], [0.25, 0.75, 0.5, 0.0]])
+    params = np.vstack([t, [1.0, 0.5, 1.0, 0.8]]).astype(dtype)
+    cell, shape = np.array([[0, 2, 1]], np.int64), np.array([4, 4, 4], np.int64)
+    D = np.sin(np.arange(3 * 64, dtype=float)).reshape(3, 64).astype(dtype)
+    x0 = np.cos(np.arange(12, dtype=float)).reshape(3, 4).astype(dtype)
+    # NumPy's S B, (4 slots, 64 points): each axis's weights at its clamped taps i-1..i+2.
+    rows = [np.zeros((4, n)) for n in shape]
+    for a in range(3):
+        w = _local_weights(t[a], kinds[a], derivative=False)[0]
+        for k in range(4):
+            np.add.at(rows[a], (np.arange(4), np.clip(cell[0, a] - 1 + k, 0, shape[a] - 1)), w[:, k])
+    SB = params[3, :, None].astype(float) * np.einsum("sw,sv,su->swvu", rows[2], rows[1], rows[0]).reshape(4, 64)
+    X = np.empty((3, 4), dtype)
+    coef = solve_kernels.constants(kinds, dtype)
+    kernels["forward"](params, coef, cell, shape, D, x0, np.arange(3), X, 0, 1)
+    tol = 1e-5 if dtype == np.float32 else 1e-12
+    if not np.allclose(X, x0 + D.astype(float) @ SB.T, rtol=0, atol=tol * 10):
+        raise RuntimeError("the compiled forward product differs from NumPy's")
+    start_v, pairs_v = np.zeros(5, np.int64), np.empty(24, np.int32)
+    kernels["vertex_incidence"](tris_t, start_v, pairs_v)
+    slot = np.arange(4)
+    start, pairs = np.zeros(5, np.int64), np.empty(24, np.int32)
+    kernels["slot_incidence_start"](slot, start_v, start)
+    kernels["slot_incidence_fill"](slot, start_v, pairs_v, start, pairs, 0, 4)
+    for xp, xq in ((X[1], X[2]), (X[1].astype(float), X[2].astype(float))):
+        g, T, sums = np.empty(4), np.empty((1, 64)), np.empty((2, 1))
+        kernels["gradient_transpose"](xp, xq, start, pairs, params, coef, x0[0], g, T, sums, 0, 1)
+        ref = gradient_component(xp[tris_t], xq[tris_t], tris_t, 4)
+        alpha = np.zeros((1, 64))
+        kernels["reduce_blocks"](T, cell, np.zeros(1, np.int64), shape, alpha)
+        if not (np.allclose(g, ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
+                and np.isclose(sums[0, 0], x0[0].astype(float) @ ref, rtol=0, atol=tol)
+                and np.isclose(sums[1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
+            raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
+    out = np.empty((4, 3))
+    kernels["to_verts"](X, slot, np.zeros((1, 3)), np.zeros(4, np.int64), out, 0, 4)
+    if not np.array_equal(out, X.T.astype(float)):
+        raise RuntimeError("the compiled vertices differ from the slots'")
 
 
 class _Gradient:
@@ -263,13 +287,23 @@ class CompiledSteps(Steps):
 
 
 def incidence(binding):
-    """The faces around every slot of `binding` (`solve_kernels.incidence`): (start (n_slots + 1,),
-    pairs (2 * 3F,) int32), made once per binding by the compiled kernel."""
+    """The faces around every slot of `binding` (`solve_kernels`): (start (n_slots + 1,) int64,
+    pairs (2 * 3F,) int32), made once per binding from its topology's faces around every vertex
+    (made once per topology: a mesh re-embedded on every frame only renumbers them)."""
     got = getattr(binding, "_incidence", None)
     if got is None:
+        K, topo, slot = _state["kernels"], binding.topology, binding.slot
+        around = getattr(topo, "_vertex_incidence", None)
+        if around is None:
+            start_v = np.zeros(topo.n_verts + 1, np.int64)
+            pairs_v = np.empty(6 * len(topo.tris), np.int32)
+            K["vertex_incidence"](topo.tris_t, start_v, pairs_v)
+            around = topo._vertex_incidence = (start_v, pairs_v)
         start = np.zeros(binding.x0.shape[1] + 1, np.int64)
         pairs = np.empty(6 * binding.n_faces, np.int32)
-        _state["kernels"]["incidence"](binding.slot, binding.topology.tris_t, start, pairs)
+        K["slot_incidence_start"](slot, around[0], start)
+        parallel.run(lambda p: K["slot_incidence_fill"](slot, around[0], around[1], start, pairs, p.start, p.stop),
+                     binding.vertex_parts)
         got = binding._incidence = (start, pairs)
     return got
 

@@ -1,5 +1,6 @@
-"""Compiled kernels of a lattice bind: the per-axis basis weights, the block layout of the weights
-and the slot-ordered coordinates, faces and face volumes (docs/performance.md, "Re-embedding").
+"""Compiled kernels of a lattice bind: the per-axis taps and cells, the slots, the per-slot
+parameters of the compiled solve, the slot-ordered coordinates and the faces' volume terms
+(docs/performance.md, "Re-embedding").
 
 A mesh that moves through the lattice is embedded anew on every frame, so these passes are
 per-frame work. Each kernel is one serial loop that writes its output in place and computes every
@@ -90,93 +91,56 @@ def define(njit):
                 pos += 1
 
     @njit
-    def block_weights(sorted_slot, shift, wu, wv, ww, s, wuv, wws, influence, cast):
-        # The weights in the (n_blocks, K, 2**shift) layout of the slots `slots` gives
-        # (sorted_slot), from the taps wu, wv, ww (V, K) and influences s (V,) of the vertices in
-        # sorted order (read in order: gathering them through the sort's permutation cost twice
-        # as much): wuv = Wv * Wu with both factors first rounded to the binding's precision
-        # (through `cast`, 8 values of it), as NumPy's per-block gathers and product do;
-        # ww = (w * s) in float64, then rounded.
-        Ku = wu.shape[1]
-        Kv = wv.shape[1]
-        Kw = ww.shape[1]
-        mask = (1 << shift) - 1
-        for v in range(sorted_slot.shape[0]):
-            sl = sorted_slot[v]
-            blk = sl >> shift
-            pos = sl & mask
-            for k in range(Ku):
-                cast[k] = wu[v, k]
-            for k in range(Kv):
-                cast[4 + k] = wv[v, k]
-            for kv in range(Kv):
-                for ku in range(Ku):
-                    wuv[blk, kv * Ku + ku, pos] = cast[4 + kv] * cast[ku]
-            for k in range(Kw):
-                wws[blk, k, pos] = ww[v, k] * s[v]
+    def slot_params(slot, tu, tv, tw, s, params, influence):
+        # The compiled solve's per-slot parameters (4, n_slots): each vertex's t along the three
+        # axes and its influence s, in the binding's precision, at its slot; influence (n_slots,).
+        for v in range(slot.shape[0]):
+            sl = slot[v]
+            params[0, sl] = tu[v]
+            params[1, sl] = tv[v]
+            params[2, sl] = tw[v]
+            params[3, sl] = s[v]
             influence[sl] = s[v]
 
     @njit
-    def slot_coords(slot, rel, coords, x0):
-        # coords (3, n_slots) float64 and x0 (3, n_slots) in the binding's precision, from the
-        # coordinates relative to the volume origins rel (V, 3); padding slots stay zero.
+    def slot_coords(slot, rel, x0):
+        # x0 (3, n_slots) in the binding's precision, from the coordinates relative to the volume
+        # origins rel (V, 3); padding slots stay zero.
         for v in range(slot.shape[0]):
             sl = slot[v]
             for c in range(3):
-                coords[c, sl] = rel[v, c]
                 x0[c, sl] = rel[v, c]
 
     @njit
-    def face_layout(slot, tris_t, shift, n_blocks, coords, edges, corners, face_order, face_vol,
-                    face_island, island_vol, island_abs):
-        # Faces as slot triples ordered by the block of their lowest slot (a stable counting
-        # sort: ties keep the faces' own order), and their float64 volume terms about the
-        # origin, as `volume.face_volumes`. Blocks hold 2**shift slots. The faces are cut into
-        # parts at `edges` (k + 1,); part j is stored as a contiguous (3, F_j) array at
-        # corners[3 edges[j]:3 edges[j + 1]] (flat), ready for the worker threads. The volume
-        # terms are summed per island (face_island (F,) in the faces' own order) in sorted face
-        # order, into island_vol and, as absolute values, island_abs: NumPy's bincount order.
-        F = tris_t.shape[1]
-        start = np.zeros(n_blocks + 1, np.int64)
-        block = np.empty(F, np.int64)
-        for f in range(F):
-            a = slot[tris_t[0, f]]
-            b = slot[tris_t[1, f]]
-            c = slot[tris_t[2, f]]
-            block[f] = min(min(a, b), c) >> shift
-            start[block[f] + 1] += 1
-        for k in range(n_blocks):
-            start[k + 1] += start[k]
-        n_parts = edges.shape[0] - 1
-        for f in range(F):
-            p = start[block[f]]
-            start[block[f]] += 1
-            face_order[p] = f
-            part = 0
-            while p >= edges[part + 1]:
-                part += 1
-            width = edges[part + 1] - edges[part]
-            at = 2 * edges[part] + p
-            for k in range(3):
-                corners[at + k * width] = slot[tris_t[k, f]]
-        for part in range(n_parts):
-            lo = edges[part]
-            width = edges[part + 1] - lo
-            for p in range(lo, lo + width):
-                at = 2 * lo + p
-                a = corners[at]
-                b = corners[at + width]
-                c = corners[at + 2 * width]
-                x0, y0, z0 = coords[0, a], coords[1, a], coords[2, a]
-                x1, y1, z1 = coords[0, b], coords[1, b], coords[2, b]
-                x2, y2, z2 = coords[0, c], coords[1, c], coords[2, c]
-                vol = (x0 * (y1 * z2 - z1 * y2)
-                       + y0 * (z1 * x2 - x1 * z2)
-                       + z0 * (x1 * y2 - y1 * x2)) / 6.0
-                face_vol[p] = vol
-                island = face_island[face_order[p]]
-                island_vol[island] += vol
-                island_abs[island] += abs(vol)
+    def face_volumes(rel, tris_t, face_vol, f0, f1):
+        # The float64 volume terms of faces f0..f1-1 about the origin, as `volume.face_volumes`,
+        # from the vertices' coordinates rel (V, 3) (in the mesh's own order, whose faces mostly
+        # address nearby vertices).
+        for f in range(f0, f1):
+            a = tris_t[0, f]
+            b = tris_t[1, f]
+            c = tris_t[2, f]
+            x0, y0, z0 = rel[a, 0], rel[a, 1], rel[a, 2]
+            x1, y1, z1 = rel[b, 0], rel[b, 1], rel[b, 2]
+            x2, y2, z2 = rel[c, 0], rel[c, 1], rel[c, 2]
+            face_vol[f] = (x0 * (y1 * z2 - z1 * y2)
+                           + y0 * (z1 * x2 - x1 * z2)
+                           + z0 * (x1 * y2 - y1 * x2)) / 6.0
 
-    return {"axis_taps": axis_taps, "slots": slots, "block_weights": block_weights, "slot_coords": slot_coords,
-            "face_layout": face_layout}
+    @njit
+    def axis_cells(x, n, lo, hi, cell, tt):
+        # `bases.axis_cells` for one local axis (n >= 2): the unclamped cell (V,) int64 and t (V,).
+        du = (hi - lo) / (n - 1)
+        top = n + 2.0
+        for v in range(x.shape[0]):
+            u = (x[v] - lo) / du
+            if u < -3.0:
+                u = -3.0
+            elif u > top:
+                u = top
+            fi = np.floor(u)
+            cell[v] = int(fi)
+            tt[v] = u - fi
+
+    return {"axis_taps": axis_taps, "slots": slots, "slot_params": slot_params, "slot_coords": slot_coords,
+            "face_volumes": face_volumes, "axis_cells": axis_cells}

@@ -1,18 +1,29 @@
 """Fixed worker threads for the per-frame kernels.
 
-NumPy releases the GIL in its gathers, small matrix products and ufuncs, so splitting blocks and
-faces over a few threads uses the other cores (docs/performance.md). The kernels are memory-bound:
-part k of every array always goes to the same thread (part 0 to the caller), so the data a thread
-wrote in one step is still in its core's cache when it reads it in the next.
+NumPy and the compiled kernels release the GIL, so splitting blocks and faces over threads uses
+every core the process may run on (docs/performance.md, "Every core"). Part k of every array
+always goes to the same thread (part 0 to the caller), so the data a thread wrote in one step is
+still in its core's cache when it reads it in the next. An idle worker waits on its queue: it
+holds no core between frames.
 """
 import os
 import queue
 import threading
 
-#: Threads a binding splits its work over (memory-bound kernels gain little beyond a few).
-WORKERS = max(1, min(os.cpu_count() or 1, 4))
-#: Below this many vertices per part, handing work to another thread costs more than it saves.
-MIN_VERTS_PER_PART = 65536
+
+def _cores():
+    """The cores this process may run on (its affinity where the platform tells it)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+#: Threads a binding splits its work over: every core the process may use.
+WORKERS = _cores()
+#: Below this many vertices per part, handing work to another thread costs more than it saves
+#: (a hand-over costs tens of microseconds; a compiled pass over 8,192 slots about as much).
+MIN_VERTS_PER_PART = 8192
 
 _workers = []
 _lock = threading.Lock()
@@ -54,6 +65,14 @@ def run(fn, parts):
             raise value
         results.append(value)
     return results
+
+
+def set_workers(n=None):
+    """Split new bindings over n threads (None: every core), e.g. to measure how a kernel scales.
+    Returns the previous count. Bindings made before keep their parts."""
+    global WORKERS
+    previous, WORKERS = WORKERS, _cores() if n is None else max(1, int(n))
+    return previous
 
 
 def split(n, n_verts):

@@ -208,33 +208,42 @@ def define(njit, njit_sums, inline):
                 alpha[row, idx[q]] += T[bl, q]
 
     @njit
-    def incidence(slot, tris_t, start, inc):
-        # The faces around every slot as the pairs (m, n) with (slot, m, n) in the face's cyclic
-        # order, in the faces' own order (a counting sort). start (n_slots + 1,) zeroed.
+    def vertex_incidence(tris_t, start, pairs):
+        # The faces around every vertex as the pairs (m, n) with (vertex, m, n) in the face's
+        # cyclic order, in the faces' own order (a counting sort). start (V + 1,) zeroed.
         F = tris_t.shape[1]
         n = start.shape[0] - 1
         for f in range(F):
             for k in range(3):
-                start[slot[tris_t[k, f]] + 1] += 1
+                start[tris_t[k, f] + 1] += 1
         for v in range(n):
             start[v + 1] += start[v]
         pos = start[:n].copy()
         for f in range(F):
-            a = slot[tris_t[0, f]]
-            b = slot[tris_t[1, f]]
-            c = slot[tris_t[2, f]]
-            p = pos[a]
-            inc[2 * p] = b
-            inc[2 * p + 1] = c
-            pos[a] = p + 1
-            p = pos[b]
-            inc[2 * p] = c
-            inc[2 * p + 1] = a
-            pos[b] = p + 1
-            p = pos[c]
-            inc[2 * p] = a
-            inc[2 * p + 1] = b
-            pos[c] = p + 1
+            for k in range(3):
+                a = tris_t[k, f]
+                p = pos[a]
+                pairs[2 * p] = tris_t[(k + 1) % 3, f]
+                pairs[2 * p + 1] = tris_t[(k + 2) % 3, f]
+                pos[a] = p + 1
+
+    @njit
+    def slot_incidence_start(slot, start_v, start):
+        # start (n_slots + 1,) zeroed: where each slot's pairs begin (a vertex's pairs, in slot order).
+        for v in range(slot.shape[0]):
+            start[slot[v] + 1] = start_v[v + 1] - start_v[v]
+        for sl in range(start.shape[0] - 1):
+            start[sl + 1] += start[sl]
+
+    @njit
+    def slot_incidence_fill(slot, start_v, pairs_v, start, pairs, v0, v1):
+        # The pairs of vertices v0..v1-1, as slots, at their slots' places (each vertex its own).
+        for v in range(v0, v1):
+            o = start[slot[v]]
+            for e in range(start_v[v], start_v[v + 1]):
+                pairs[2 * o] = slot[pairs_v[2 * e]]
+                pairs[2 * o + 1] = slot[pairs_v[2 * e + 1]]
+                o += 1
 
     @njit
     def to_verts(X, slot, origin, vertex_row, out, v0, v1):
@@ -245,15 +254,6 @@ def define(njit, njit_sums, inline):
             for c in range(3):
                 out[v, c] = np.float64(X[c, sl]) + origin[row, c]
 
-    @njit
-    def slot_params(sorted_slot, tu, tv, tw, s, params):
-        # params (4, n_slots) of the vertices in sorted order: their cell coordinates and weights.
-        for v in range(sorted_slot.shape[0]):
-            sl = sorted_slot[v]
-            params[0, sl] = tu[v]
-            params[1, sl] = tv[v]
-            params[2, sl] = tw[v]
-            params[3, sl] = s[v]
-
     return {"forward": forward, "gradient_transpose": gradient_transpose, "reduce_blocks": reduce_blocks,
-            "incidence": incidence, "to_verts": to_verts, "slot_params": slot_params}
+            "vertex_incidence": vertex_incidence,
+            "slot_incidence_start": slot_incidence_start, "slot_incidence_fill": slot_incidence_fill, "to_verts": to_verts}

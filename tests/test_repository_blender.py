@@ -182,6 +182,7 @@ def test_a_package_for_any_platform_left_beside_the_platform_ones_goes(tmp_path)
 
 def test_preferences_add_the_repository_and_install_vpffd(life):
     old = life["published_old"]
+    assert [e["version"] for e in life["index_old"]["data"]] == [OLD]
     assert [os.path.basename(p) for p in old] == [f"{EXT_ID}-{OLD}-{this_platform().replace('-', '_')}.zip"]
     step_ = life["ui_install"]["step"]
     assert step_["add"] == ["FINISHED"] and step_["sync"] == ["FINISHED"]

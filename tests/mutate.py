@@ -115,6 +115,11 @@ MUTATIONS = {
         "    unbind(obj)\n    _note_applied(obj)",
         "    unbind(obj)",
         ["tests/test_panel_blender.py", "-k", "after_apply"], {}),
+    "demo-view-kept": (
+        "operators/demos.py",
+        "        _frame_views(context, user_scene if scene != user_scene else None)",
+        "        _frame_views(context)",
+        ["tests/e2e/test_gui_window.py"], {"VPFFD_NO_E2E": ""}),
     "bpy-missing": (
         None, None, None,
         ["tests/test_stack_blender.py"], {"PYTHONPATH": "{stub}"}),

@@ -165,6 +165,10 @@ def session():
     prefs = bpy.context.preferences
     prefs.view.show_splash = False
     yield 0.5
+    # The user's own scene and how its viewport looks, before any demo opens its own scene.
+    user_scene = bpy.context.window_manager.windows[0].scene.name    # undo renews the data: by name
+    user_view = window_context()["area"].spaces[0].region_3d
+    view_before = (user_view.view_perspective, tuple(user_view.view_location), user_view.view_distance)
 
     # Add > VP-FFD Demos > Bouncing Ball, as from the Add menu.
     op("object.vpffd_demo_bouncing_ball")
@@ -525,6 +529,17 @@ def session():
     yield 0.5
     check("bent arm: the overlay draws the falloff's box", eng.falloff_geometry(arm) is not None)
     yield from screenshot("arm")
+
+    # Back to the user's own scene (the scene selector): its viewport shows the view it had
+    # before the demos, not their camera view.
+    bpy.context.window_manager.windows[0].scene = bpy.data.scenes[user_scene]
+    yield 1.5
+    rv3d = window_context()["area"].spaces[0].region_3d
+    view_after = (rv3d.view_perspective, tuple(rv3d.view_location), rv3d.view_distance)
+    check("back in the user's scene, the viewport shows the view it had before the demos",
+          view_after[0] == view_before[0] != "CAMERA"
+          and np.allclose(view_after[1], view_before[1], atol=1e-5)
+          and abs(view_after[2] - view_before[2]) <= 1e-5, (view_before, view_after))
 
 
 def main():

@@ -84,3 +84,61 @@ def test_every_menu_path_in_the_panel_and_messages_names_what_exists():
                 wrong.append(f"{where}:{line}: {' > '.join(steps)}")
     assert seen >= 3, "the sources name menu paths; none was found"
     assert not wrong, wrong
+
+
+def _tooltips():
+    """(file, line, text) of every tooltip VP-FFD gives: properties' and enum items'
+    descriptions, and operators' docstrings (Blender shows them on hover)."""
+    out = []
+    for path in SOURCES:
+        with open(path) as fh:
+            tree = ast.parse(fh.read())
+        name = os.path.basename(path)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call):
+                for kw in node.keywords:
+                    if kw.arg == "description" and isinstance(kw.value, ast.Constant):
+                        out.append((name, node.lineno, kw.value.value))
+                    if kw.arg == "items" and isinstance(kw.value, (ast.List, ast.Tuple)):
+                        out.extend((name, el.lineno, el.elts[2].value) for el in kw.value.elts
+                                   if isinstance(el, ast.Tuple) and len(el.elts) >= 3
+                                   and isinstance(el.elts[2], ast.Constant))
+            if isinstance(node, ast.ClassDef) and any(getattr(b, "attr", "") == "Operator" for b in node.bases):
+                doc = ast.get_docstring(node)
+                if doc:
+                    out.append((name, node.lineno, doc))
+    return out
+
+
+def test_tooltips_are_one_or_two_plain_sentences():
+    """A tooltip is read while hovering: at most two sentences and 35 words (the details belong
+    in the README)."""
+    tips = _tooltips()
+    assert len(tips) >= 30, "the sources hold tooltips; too few were found"
+    long = [f"{where}:{line}: {len(text.split())} words" for where, line, text in tips
+            if len(text.split()) > 35 or len(re.findall(r"[.!?](?:\s|$)", text.strip())) > 2]
+    assert not long, long
+
+
+def _compared_with_a_constant(tree):
+    """Lines of f-strings that show a comparison with a value filled in ("(< {LIMIT})"): a
+    developer's notation, not a user's words."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr):
+            parts = node.values
+            for a, b in zip(parts, parts[1:]):
+                if isinstance(a, ast.Constant) and isinstance(b, ast.FormattedValue) \
+                        and a.value.rstrip().endswith(("<", ">", "<=", ">=")):
+                    found.append(node.lineno)
+    return found
+
+
+def test_messages_use_words_not_comparisons():
+    assert _compared_with_a_constant(ast.parse('f"Auto: {n} vertices (< {LIMIT}) are faster"'))
+    assert not _compared_with_a_constant(ast.parse('f"a mesh of {n} vertices solves faster there"'))
+    wrong = []
+    for path in SOURCES:
+        with open(path) as fh:
+            wrong += [f"{os.path.basename(path)}:{line}" for line in _compared_with_a_constant(ast.parse(fh.read()))]
+    assert not wrong, wrong

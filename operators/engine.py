@@ -73,6 +73,7 @@ class Status:
     editing: bool = False                  #: solved from the mesh as edited (its Edit Mode)
     kernels: Optional[str] = None          #: on the CPU: "compiled" or "NumPy"
     kernels_why: Optional[str] = None      #: why NumPy's kernels ran, in words
+    awaits_kernels: bool = False           #: NumPy solved while the compiled kernels compiled
 
 
 def status(obj):
@@ -788,6 +789,8 @@ def _publish(obj, state, frame, result, t0):
             info["kernels_why"] = ("Backend is CPU (NumPy): the reference path" if s.backend == "NUMPY"
                                    else "cages solve with NumPy" if isinstance(lattice, vp.Cage)
                                    else compiled_backend.status()[1])
+            info["awaits_kernels"] = (s.backend != "NUMPY" and isinstance(lattice, vp.Lattice)
+                                      and compiled_backend.status()[0] == "compiling")
     reference = result.reference_volume
     # A mirror turns every vertex inside out alike: folds are the vertices turned against it.
     mirrored = bool(reference and result.plain_volume and result.plain_volume / reference < 0)

@@ -61,7 +61,7 @@ def headline(info, bound, using_cache, applied=None, kernels="ready"):
         text = "deforming as the Lattice modifier does"
     if warned:
         return text + f" ({len(warned)} warning{'s' if len(warned) > 1 else ''} in Status)", "ERROR"
-    if kernels == "compiling" and info.kernels == "NumPy":
+    if kernels == "compiling" and info.awaits_kernels:      # the live state: not once compiled
         return ("compiling VP-FFD's kernels (first use only): solving with NumPy meanwhile, "
                 + text), "TIME"
     return text, "CHECKMARK" if info.volume_percent is not None else "INFO"

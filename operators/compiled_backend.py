@@ -31,7 +31,9 @@ _state = {"status": "idle", "why": "", "proc": None}
 #: the very module name it has in Blender (its parent packages made empty, so that the extension's
 #: own __init__, which needs bpy, does not run): numba's cache keys the kernels by source file and
 #: refers to their module by name, so the two processes read each other's cache.
-_CHILD = ("import importlib, sys, types\n"
+_CHILD = ("import importlib, os, sys, types\n"
+          "if hasattr(os, 'nice'):\n"
+          "    os.nice(10)\n"
           "ext_dir, root = sys.argv[1], sys.argv[2]\n"
           "parts = root.split('.')\n"
           "for i in range(1, len(parts) + 1):\n"
@@ -87,11 +89,16 @@ def start(in_process=None):
             else:
                 _off(vp.compiled.why())
             return
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache,
+        # The compile takes seconds of one core: a process of lower priority (nice 10, or below
+        # normal on Windows), with one thread for everything it links, so that Blender's window
+        # keeps its frame rate on a machine of two cores.
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1",
+                   OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
                    PYTHONPATH=os.pathsep.join(p for p in sys.path if p and os.path.isdir(p)))
+        flags = getattr(subprocess, "BELOW_NORMAL_PRIORITY_CLASS", 0)
         _state["proc"] = subprocess.Popen(
             [sys.executable, "-c", _CHILD, _EXTENSION_DIR, _ROOT_PACKAGE], env=env, stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, creationflags=flags)
         _state.update(status="compiling", why="compiling the kernels in a separate process; "
                                              "NumPy solves meanwhile")
         bpy.app.timers.register(_poll, first_interval=0.5)

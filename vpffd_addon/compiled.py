@@ -122,7 +122,25 @@ def _smoke(kernels):
     kernels["face_volumes"](np.ascontiguousarray(coords.T), tris_t, vol, 0, 3)
     if not np.array_equal(vol, face_volumes(coords, tris_t)):
         raise RuntimeError("the faces' volume terms differ from NumPy's")
+    # A bind's other kernels, with the argument types a bind gives them (each signature compiles
+    # once: here, not in the first frame).
+    cell, t = np.empty(len(x), np.int64), np.empty(len(x))
+    kernels["axis_cells"](x, 5, -0.5, 0.5, cell, t)
+    if not all(np.array_equal(a, b) for a, b in zip((cell, t), axis_cells(x, 5, -0.5, 0.5))):
+        raise RuntimeError("the cells of an axis differ from NumPy's")
+    order = np.argsort(cell, kind="stable")
+    runs = np.flatnonzero(np.r_[True, cell[order][1:] != cell[order][:-1]])
+    lengths = np.diff(np.r_[runs, len(x)])
+    slot, sorted_slot = np.empty(len(x), np.int64), np.empty(len(x), np.int64)
+    kernels["slots"](order, runs, lengths, np.arange(len(runs)), 8, slot, sorted_slot)
+    if not np.array_equal(slot[order] // 8, np.repeat(np.arange(len(runs)), lengths)):
+        raise RuntimeError("the slots of the runs are not in their blocks")
     for dtype in (np.float32, np.float64):
+        params, influence, x0 = np.zeros((4, 8 * len(runs)), dtype), np.zeros(8 * len(runs), dtype), np.zeros((3, 8 * len(runs)), dtype)
+        kernels["slot_params"](slot, t, t, t, np.ones(len(x)), params, influence)
+        kernels["slot_coords"](slot, np.stack([x, x, x], 1), x0)
+        if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))):
+            raise RuntimeError("the per-slot values are not at their slots")
         _smoke_solve(kernels, dtype)
 
 

@@ -48,212 +48,222 @@ def constants(interpolation, dtype):
 def define(njit, njit_sums, inline):
     """The kernels, compiled by `njit` and `njit_sums` (helpers by `inline`, which numba inlines
     into their callers: a loop over arrays handed to a called function is not vectorised, as the
-    compiler cannot tell that they do not overlap): {name: function}."""
+    compiler cannot tell that they do not overlap): {name: function}. The helpers are bound in
+    this module's namespace, where the kernels find them by name (numba caches a kernel that
+    calls a global function; one that calls a function it closes over is compiled anew in every
+    process)."""
+    for name in _HELPERS:
+        globals()[name] = inline(_SOURCE[name])
+    return {name: (njit_sums if kind == "njit_sums" else njit)(_SOURCE[name]) for name, kind in _KERNELS.items()}
 
-    @inline
-    def weights(params, a, base, bs, c, w):
-        # The four weights of axis a at the block's slots: w (4, bs), each a cubic in t by
-        # Horner's rule with the axis's coefficients c[a] (4, 4) (`constants`). One loop for every
-        # kind, in the binding's precision (float32 slots are weighed in float32: twice the lanes).
-        c00, c01, c02, c03 = c[a, 0, 0], c[a, 0, 1], c[a, 0, 2], c[a, 0, 3]
-        c10, c11, c12, c13 = c[a, 1, 0], c[a, 1, 1], c[a, 1, 2], c[a, 1, 3]
-        c20, c21, c22, c23 = c[a, 2, 0], c[a, 2, 1], c[a, 2, 2], c[a, 2, 3]
-        c30, c31, c32, c33 = c[a, 3, 0], c[a, 3, 1], c[a, 3, 2], c[a, 3, 3]
+
+def weights(params, a, base, bs, c, w):
+    # The four weights of axis a at the block's slots: w (4, bs), each a cubic in t by
+    # Horner's rule with the axis's coefficients c[a] (4, 4) (`constants`). One loop for every
+    # kind, in the binding's precision (float32 slots are weighed in float32: twice the lanes).
+    c00, c01, c02, c03 = c[a, 0, 0], c[a, 0, 1], c[a, 0, 2], c[a, 0, 3]
+    c10, c11, c12, c13 = c[a, 1, 0], c[a, 1, 1], c[a, 1, 2], c[a, 1, 3]
+    c20, c21, c22, c23 = c[a, 2, 0], c[a, 2, 1], c[a, 2, 2], c[a, 2, 3]
+    c30, c31, c32, c33 = c[a, 3, 0], c[a, 3, 1], c[a, 3, 2], c[a, 3, 3]
+    for s in range(bs):
+        t = params[a, base + s]
+        w[0, s] = ((c03 * t + c02) * t + c01) * t + c00
+        w[1, s] = ((c13 * t + c12) * t + c11) * t + c10
+        w[2, s] = ((c23 * t + c22) * t + c21) * t + c20
+        w[3, s] = ((c33 * t + c32) * t + c31) * t + c30
+
+
+def block_weights(params, base, bs, c, wu, wv, ww):
+    # The block's weights per axis; ww carries the influence s.
+    weights(params, 0, base, bs, c, wu)
+    weights(params, 1, base, bs, c, wv)
+    weights(params, 2, base, bs, c, ww)
+    for k in range(4):
         for s in range(bs):
-            t = params[a, base + s]
-            w[0, s] = ((c03 * t + c02) * t + c01) * t + c00
-            w[1, s] = ((c13 * t + c12) * t + c11) * t + c10
-            w[2, s] = ((c23 * t + c22) * t + c21) * t + c20
-            w[3, s] = ((c33 * t + c32) * t + c31) * t + c30
+            ww[k, s] *= params[3, base + s]
 
-    @inline
-    def block_weights(params, base, bs, c, wu, wv, ww):
-        # The block's weights per axis; ww carries the influence s.
-        weights(params, 0, base, bs, c, wu)
-        weights(params, 1, base, bs, c, wv)
-        weights(params, 2, base, bs, c, ww)
-        for k in range(4):
+
+def same_cell(block_cell, a, b):
+    # Whether blocks a and b lie in one cell (consecutive blocks of a run do: taps once).
+    return (block_cell[a, 0] == block_cell[b, 0] and block_cell[a, 1] == block_cell[b, 1]
+            and block_cell[a, 2] == block_cell[b, 2])
+
+
+def taps(cell, shape, out):
+    # The 64 control points of a block in the cell `cell` (3,): (w, v, u) order, clamped.
+    nu = shape[0]
+    nv = shape[1]
+    nw = shape[2]
+    q = 0
+    for k in range(4):
+        pk = min(max(cell[2] - 1 + k, 0), nw - 1)
+        for j in range(4):
+            pj = min(max(cell[1] - 1 + j, 0), nv - 1)
+            for i in range(4):
+                pi = min(max(cell[0] - 1 + i, 0), nu - 1)
+                out[q] = (pk * nv + pj) * nu + pi
+                q += 1
+
+
+def forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1):
+    # X[c] = x0[c] + S B D[c] for c in comps, blocks b0..b1-1. D (3, N) and X, x0 (3, n_slots)
+    # in the binding's precision (X[c] may be row c of a one-row array: comps then [0]).
+    bs = params.shape[1] // block_cell.shape[0]
+    dt = params.dtype
+    wu = np.empty((4, bs), dt)
+    wv = np.empty((4, bs), dt)
+    ww = np.empty((4, bs), dt)
+    acc = np.empty(bs, dt)
+    acck = np.empty(bs, dt)
+    idx = np.empty(64, np.int64)
+    last = -1
+    for bl in range(b0, b1):
+        base = bl * bs
+        block_weights(params, base, bs, c, wu, wv, ww)
+        if last < 0 or not same_cell(block_cell, last, bl):
+            taps(block_cell[bl], shape, idx)
+            last = bl
+        for ci in range(comps.shape[0]):
+            comp = comps[ci]
             for s in range(bs):
-                ww[k, s] *= params[3, base + s]
-
-    @inline
-    def same_cell(block_cell, a, b):
-        # Whether blocks a and b lie in one cell (consecutive blocks of a run do: taps once).
-        return (block_cell[a, 0] == block_cell[b, 0] and block_cell[a, 1] == block_cell[b, 1]
-                and block_cell[a, 2] == block_cell[b, 2])
-
-    @inline
-    def taps(cell, shape, out):
-        # The 64 control points of a block in the cell `cell` (3,): (w, v, u) order, clamped.
-        nu = shape[0]
-        nv = shape[1]
-        nw = shape[2]
-        q = 0
-        for k in range(4):
-            pk = min(max(cell[2] - 1 + k, 0), nw - 1)
-            for j in range(4):
-                pj = min(max(cell[1] - 1 + j, 0), nv - 1)
-                for i in range(4):
-                    pi = min(max(cell[0] - 1 + i, 0), nu - 1)
-                    out[q] = (pk * nv + pj) * nu + pi
-                    q += 1
-
-    @njit_sums
-    def forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1):
-        # X[c] = x0[c] + S B D[c] for c in comps, blocks b0..b1-1. D (3, N) and X, x0 (3, n_slots)
-        # in the binding's precision (X[c] may be row c of a one-row array: comps then [0]).
-        bs = params.shape[1] // block_cell.shape[0]
-        dt = params.dtype
-        wu = np.empty((4, bs), dt)
-        wv = np.empty((4, bs), dt)
-        ww = np.empty((4, bs), dt)
-        acc = np.empty(bs, dt)
-        acck = np.empty(bs, dt)
-        idx = np.empty(64, np.int64)
-        last = -1
-        for bl in range(b0, b1):
-            base = bl * bs
-            block_weights(params, base, bs, c, wu, wv, ww)
-            if last < 0 or not same_cell(block_cell, last, bl):
-                taps(block_cell[bl], shape, idx)
-                last = bl
-            for ci in range(comps.shape[0]):
-                comp = comps[ci]
+                acc[s] = 0.0
+            for k in range(4):
                 for s in range(bs):
-                    acc[s] = 0.0
-                for k in range(4):
+                    acck[s] = 0.0
+                for j in range(4):
+                    q = (k * 4 + j) * 4
+                    d0 = D[comp, idx[q]]
+                    d1 = D[comp, idx[q + 1]]
+                    d2 = D[comp, idx[q + 2]]
+                    d3 = D[comp, idx[q + 3]]
                     for s in range(bs):
-                        acck[s] = 0.0
-                    for j in range(4):
-                        q = (k * 4 + j) * 4
-                        d0 = D[comp, idx[q]]
-                        d1 = D[comp, idx[q + 1]]
-                        d2 = D[comp, idx[q + 2]]
-                        d3 = D[comp, idx[q + 3]]
-                        for s in range(bs):
-                            acck[s] += wv[j, s] * (wu[0, s] * d0 + wu[1, s] * d1 + wu[2, s] * d2 + wu[3, s] * d3)
-                    for s in range(bs):
-                        acc[s] += ww[k, s] * acck[s]
+                        acck[s] += wv[j, s] * (wu[0, s] * d0 + wu[1, s] * d1 + wu[2, s] * d2 + wu[3, s] * d3)
                 for s in range(bs):
-                    X[comp, base + s] = x0[comp, base + s] + acc[s]
-
-    @inline
-    def block_transpose(gs, bs, wu, wv, ww, h, T):
-        # T (64,) = the block's piece of (S B)^T g, g = gs (bs,): sum_s ww[k] wv[j] wu[i] g.
-        for k in range(4):
-            for j in range(4):
-                for s in range(bs):
-                    h[s] = ww[k, s] * wv[j, s] * gs[s]
-                q = (k * 4 + j) * 4
-                a0 = 0.0
-                a1 = 0.0
-                a2 = 0.0
-                a3 = 0.0
-                for s in range(bs):
-                    a0 += h[s] * wu[0, s]
-                    a1 += h[s] * wu[1, s]
-                    a2 += h[s] * wu[2, s]
-                    a3 += h[s] * wu[3, s]
-                T[q] = a0
-                T[q + 1] = a1
-                T[q + 2] = a2
-                T[q + 3] = a3
-
-    @njit_sums
-    def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b1):
-        # Blocks b0..b1-1: g (n_slots,) float64, the volume gradient along the axis that xp, xq
-        # (n_slots,) complete (products in their precision, sums in float64, as
-        # `volume.gradient_component`); per block T[bl] (64,) its piece of (S B)^T g (float64),
-        # sums[0, bl] = x0a . g (when x0a is not empty) and sums[1, bl] = sum |s g|.
-        n_blocks = T.shape[0]
-        bs = g.shape[0] // n_blocks
-        dt = params.dtype
-        wu = np.empty((4, bs), dt)
-        wv = np.empty((4, bs), dt)
-        ww = np.empty((4, bs), dt)
-        gs = np.empty(bs)
-        h = np.empty(bs)
-        with_x0 = x0a.shape[0] > 0
-        for bl in range(b0, b1):
-            base = bl * bs
-            sx = 0.0
-            sf = 0.0
+                    acc[s] += ww[k, s] * acck[s]
             for s in range(bs):
-                v = base + s
-                acc = 0.0
-                for e in range(inc_start[v], inc_start[v + 1]):
-                    m = inc[2 * e]
-                    n = inc[2 * e + 1]
-                    acc += xp[m] * xq[n] - xq[m] * xp[n]
-                gv = acc * (1.0 / 6.0)
-                g[v] = gv
-                gs[s] = gv
-                if with_x0:
-                    sx += x0a[v] * gv
-                sf += abs(params[3, v] * gv)
-            sums[0, bl] = sx
-            sums[1, bl] = sf
-            block_weights(params, base, bs, c, wu, wv, ww)
-            block_transpose(gs, bs, wu, wv, ww, h, T[bl])
+                X[comp, base + s] = x0[comp, base + s] + acc[s]
 
-    @njit
-    def reduce_blocks(T, block_cell, block_row, shape, alpha):
-        # alpha[row] += every block's piece at its control points, in block order.
-        idx = np.empty(64, np.int64)
-        for bl in range(T.shape[0]):
-            if bl == 0 or not same_cell(block_cell, bl - 1, bl):
-                taps(block_cell[bl], shape, idx)
-            row = block_row[bl]
-            for q in range(64):
-                alpha[row, idx[q]] += T[bl, q]
 
-    @njit
-    def vertex_incidence(tris_t, start, pairs):
-        # The faces around every vertex as the pairs (m, n) with (vertex, m, n) in the face's
-        # cyclic order, in the faces' own order (a counting sort). start (V + 1,) zeroed.
-        F = tris_t.shape[1]
-        n = start.shape[0] - 1
-        for f in range(F):
-            for k in range(3):
-                start[tris_t[k, f] + 1] += 1
-        for v in range(n):
-            start[v + 1] += start[v]
-        pos = start[:n].copy()
-        for f in range(F):
-            for k in range(3):
-                a = tris_t[k, f]
-                p = pos[a]
-                pairs[2 * p] = tris_t[(k + 1) % 3, f]
-                pairs[2 * p + 1] = tris_t[(k + 2) % 3, f]
-                pos[a] = p + 1
+def block_transpose(gs, bs, wu, wv, ww, h, T):
+    # T (64,) = the block's piece of (S B)^T g, g = gs (bs,): sum_s ww[k] wv[j] wu[i] g.
+    for k in range(4):
+        for j in range(4):
+            for s in range(bs):
+                h[s] = ww[k, s] * wv[j, s] * gs[s]
+            q = (k * 4 + j) * 4
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            a3 = 0.0
+            for s in range(bs):
+                a0 += h[s] * wu[0, s]
+                a1 += h[s] * wu[1, s]
+                a2 += h[s] * wu[2, s]
+                a3 += h[s] * wu[3, s]
+            T[q] = a0
+            T[q + 1] = a1
+            T[q + 2] = a2
+            T[q + 3] = a3
 
-    @njit
-    def slot_incidence_start(slot, start_v, start):
-        # start (n_slots + 1,) zeroed: where each slot's pairs begin (a vertex's pairs, in slot order).
-        for v in range(slot.shape[0]):
-            start[slot[v] + 1] = start_v[v + 1] - start_v[v]
-        for sl in range(start.shape[0] - 1):
-            start[sl + 1] += start[sl]
 
-    @njit
-    def slot_incidence_fill(slot, start_v, pairs_v, start, pairs, v0, v1):
-        # The pairs of vertices v0..v1-1, as slots, at their slots' places (each vertex its own).
-        for v in range(v0, v1):
-            o = start[slot[v]]
-            for e in range(start_v[v], start_v[v + 1]):
-                pairs[2 * o] = slot[pairs_v[2 * e]]
-                pairs[2 * o + 1] = slot[pairs_v[2 * e + 1]]
-                o += 1
+def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b1):
+    # Blocks b0..b1-1: g (n_slots,) float64, the volume gradient along the axis that xp, xq
+    # (n_slots,) complete (products in their precision, sums in float64, as
+    # `volume.gradient_component`); per block T[bl] (64,) its piece of (S B)^T g (float64),
+    # sums[0, bl] = x0a . g (when x0a is not empty) and sums[1, bl] = sum |s g|.
+    n_blocks = T.shape[0]
+    bs = g.shape[0] // n_blocks
+    dt = params.dtype
+    wu = np.empty((4, bs), dt)
+    wv = np.empty((4, bs), dt)
+    ww = np.empty((4, bs), dt)
+    gs = np.empty(bs)
+    h = np.empty(bs)
+    with_x0 = x0a.shape[0] > 0
+    for bl in range(b0, b1):
+        base = bl * bs
+        sx = 0.0
+        sf = 0.0
+        for s in range(bs):
+            v = base + s
+            acc = 0.0
+            for e in range(inc_start[v], inc_start[v + 1]):
+                m = inc[2 * e]
+                n = inc[2 * e + 1]
+                acc += xp[m] * xq[n] - xq[m] * xp[n]
+            gv = acc * (1.0 / 6.0)
+            g[v] = gv
+            gs[s] = gv
+            if with_x0:
+                sx += x0a[v] * gv
+            sf += abs(params[3, v] * gv)
+        sums[0, bl] = sx
+        sums[1, bl] = sf
+        block_weights(params, base, bs, c, wu, wv, ww)
+        block_transpose(gs, bs, wu, wv, ww, h, T[bl])
 
-    @njit
-    def to_verts(X, slot, origin, vertex_row, out, v0, v1):
-        # out[v] = X[:, slot[v]] + origin[vertex_row[v]] in float64, vertices v0..v1-1.
-        for v in range(v0, v1):
-            sl = slot[v]
-            row = vertex_row[v]
-            for c in range(3):
-                out[v, c] = np.float64(X[c, sl]) + origin[row, c]
 
-    return {"forward": forward, "gradient_transpose": gradient_transpose, "reduce_blocks": reduce_blocks,
-            "vertex_incidence": vertex_incidence,
-            "slot_incidence_start": slot_incidence_start, "slot_incidence_fill": slot_incidence_fill, "to_verts": to_verts}
+def reduce_blocks(T, block_cell, block_row, shape, alpha):
+    # alpha[row] += every block's piece at its control points, in block order.
+    idx = np.empty(64, np.int64)
+    for bl in range(T.shape[0]):
+        if bl == 0 or not same_cell(block_cell, bl - 1, bl):
+            taps(block_cell[bl], shape, idx)
+        row = block_row[bl]
+        for q in range(64):
+            alpha[row, idx[q]] += T[bl, q]
+
+
+def vertex_incidence(tris_t, start, pairs):
+    # The faces around every vertex as the pairs (m, n) with (vertex, m, n) in the face's
+    # cyclic order, in the faces' own order (a counting sort). start (V + 1,) zeroed.
+    F = tris_t.shape[1]
+    n = start.shape[0] - 1
+    for f in range(F):
+        for k in range(3):
+            start[tris_t[k, f] + 1] += 1
+    for v in range(n):
+        start[v + 1] += start[v]
+    pos = start[:n].copy()
+    for f in range(F):
+        for k in range(3):
+            a = tris_t[k, f]
+            p = pos[a]
+            pairs[2 * p] = tris_t[(k + 1) % 3, f]
+            pairs[2 * p + 1] = tris_t[(k + 2) % 3, f]
+            pos[a] = p + 1
+
+
+def slot_incidence_start(slot, start_v, start):
+    # start (n_slots + 1,) zeroed: where each slot's pairs begin (a vertex's pairs, in slot order).
+    for v in range(slot.shape[0]):
+        start[slot[v] + 1] = start_v[v + 1] - start_v[v]
+    for sl in range(start.shape[0] - 1):
+        start[sl + 1] += start[sl]
+
+
+def slot_incidence_fill(slot, start_v, pairs_v, start, pairs, v0, v1):
+    # The pairs of vertices v0..v1-1, as slots, at their slots' places (each vertex its own).
+    for v in range(v0, v1):
+        o = start[slot[v]]
+        for e in range(start_v[v], start_v[v + 1]):
+            pairs[2 * o] = slot[pairs_v[2 * e]]
+            pairs[2 * o + 1] = slot[pairs_v[2 * e + 1]]
+            o += 1
+
+
+def to_verts(X, slot, origin, vertex_row, out, v0, v1):
+    # out[v] = X[:, slot[v]] + origin[vertex_row[v]] in float64, vertices v0..v1-1.
+    for v in range(v0, v1):
+        sl = slot[v]
+        row = vertex_row[v]
+        for c in range(3):
+            out[v, c] = np.float64(X[c, sl]) + origin[row, c]
+
+
+_HELPERS = ("weights", "block_weights", "same_cell", "taps", "block_transpose")
+_KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "reduce_blocks": "njit",
+            "vertex_incidence": "njit", "slot_incidence_start": "njit", "slot_incidence_fill": "njit",
+            "to_verts": "njit"}
+#: The plain functions, as written (`define` rebinds the helpers' names to compiled ones).
+_SOURCE = {name: globals()[name] for name in _HELPERS + tuple(_KERNELS)}

@@ -226,6 +226,7 @@ class _Bound:
         self.matrix = None      # object -> lattice space of the last solve
         self.falloff_box = None  # world corners (8, 3) of the falloff's outer box, for the overlay
         self.orientation = 1.0  # -1 while the lattice mirrors space (folds count against it)
+        self.encloses_nothing = False  # the last input had no volume to keep (`_evaluate`)
         self.costs = {}         # last solve's seconds per (path, vertices, options) for Auto
         self.settings = None
         self.deleted = None     # name of the lattice that the user deleted, for the panel
@@ -719,17 +720,25 @@ def _unchanged(state, frame):
 
 def _evaluate(state, frame):
     """The core's pipeline on `frame` (its solver picks the CPU or the GPU; on the CPU, the
-    compiled kernels once they are loaded): a vp.FrameResult."""
+    compiled kernels once they are loaded): a vp.FrameResult.
+
+    An open surface with no volume about the lattice's centre (a plane through it) has no volume
+    to keep: aiming at zero would bend it into another shape. It deforms as the Lattice modifier
+    does (pins still hold). Such a mesh stays so from frame to frame, so once found the plain
+    deformation is tried first and the correction only when the mesh no longer is one."""
     if state.settings.backend != "NUMPY":
         compiled_backend.start()    # once per session; NumPy solves until the kernels are ready
+    inputs = frame.inputs
+    plain = dataclasses.replace(inputs, axes="", directions=None, correct=bool(inputs.pins))
     state.backend = ("CPU", "")
-    result = state.pipeline.evaluate(frame.inputs)
-    if frame.inputs.correct and encloses_nothing(result):
-        # An open surface with no volume about the lattice's centre (a plane through it) has no
-        # volume to keep: aiming at zero would bend it into another shape. It deforms as the
-        # Lattice modifier does; pins still hold.
-        plain = dataclasses.replace(frame.inputs, axes="", directions=None,
-                                    correct=bool(frame.inputs.pins))
+    if inputs.correct and state.encloses_nothing:
+        result = state.pipeline.evaluate(plain)
+        if encloses_nothing(result):
+            return result
+        state.backend = ("CPU", "")
+    result = state.pipeline.evaluate(inputs)
+    state.encloses_nothing = inputs.correct and encloses_nothing(result)
+    if state.encloses_nothing:
         state.backend = ("CPU", "")
         result = state.pipeline.evaluate(plain)
     return result

@@ -107,8 +107,8 @@ MUTATIONS = {
         ["tests/test_panel_blender.py", "-k", "falloff"], {}),
     "open-mesh-aims-at-zero": (
         "operators/engine.py",
-        "    if frame.inputs.correct and encloses_nothing(result):",
-        "    if False:",
+        "    state.encloses_nothing = inputs.correct and encloses_nothing(result)",
+        "    state.encloses_nothing = False",
         ["tests/test_panel_blender.py", "-k", "open_mesh"], {}),
     "apply-forgets-the-lattice": (
         "operators/engine.py",

@@ -111,6 +111,15 @@ def test_an_open_mesh_enclosing_no_volume_deforms_as_the_lattice_modifier_whatev
     assert "Correction: None" not in text and icon != "ERROR"
     assert any("encloses no volume" in t for t, _ in _status_lines(ext, grid))
     _assert_counts_agree(ext, grid)
+    # Moved off the centre it has a volume about it, which is kept; back, none again.
+    eng = _ops(ext).engine
+    grid.location.z = 0.2
+    bpy.context.view_layer.update()
+    assert not eng.status(grid).encloses_nothing and abs(eng.status(grid).volume_percent - 100) <= 1e-3
+    grid.location.z = 0.0
+    bpy.context.view_layer.update()
+    assert eng.status(grid).encloses_nothing
+    assert np.abs(evaluated_world(grid)[0] - theirs).max() <= 1e-6 * np.ptp(theirs, 0).max()
 
 
 def test_a_mirror_alone_mirrors_space_and_folds_nothing(ext):

@@ -197,3 +197,37 @@ def test_a_numpy_outside_the_supported_range_keeps_numpy_and_says_why():
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == ("False NumPy 2.6.0 is outside the range the compiled kernels "
                                    "support (1.24 to 2.5)"), proc.stdout
+
+
+def _small_bodies(n=44, seed=5):
+    """n closed bodies of 0.8% to 10% of the lattice's size scattered through it (float64)."""
+    rng = np.random.default_rng(seed)
+    verts, tris, offset = [], [], 0
+    for _ in range(n):
+        v, f = vp.icosphere(3, rng.uniform(0.004, 0.05))
+        verts.append(v + rng.uniform(-0.4, 0.4, 3))
+        tris.append(f + offset)
+        offset += len(v)
+    return np.vstack(verts), np.vstack(tris)
+
+
+def test_many_small_islands_keep_their_volumes_in_float32(kernels):
+    # Squashed to half height: in float32 the coordinates of a body 1% of the lattice's size round
+    # at ~1e-5 of its volume, so the joint island steps run in float64 (`CompiledSteps.in_float64`)
+    # and every island's volume, measured from the float32 coordinates Blender would store, is
+    # kept to 1e-5.
+    verts, tris = _small_bodies()
+    lat = vp.Lattice((5, 5, 5), "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    P = lat.rest_points * [1.0, 1.0, 0.5] + np.random.default_rng(1).normal(0, 0.01, lat.rest_points.shape)
+    b = vp.bind(lat, verts, tris, dtype=np.float32)
+    assert b.n_islands == 44
+    sol = b.solve(P, axes="XYZ", islands=True)
+    assert not sol.warnings, sol.warnings
+    topo = vp.Topology(tris, len(verts))
+
+    def volumes(v):
+        stored = np.ascontiguousarray(v.astype(np.float32).astype(np.float64).T)
+        return np.bincount(topo.face_island, vp.volume.face_volumes(stored, topo.tris_t), topo.n_islands)
+    rest, plain, out = volumes(verts), volumes(b.deform(P)), volumes(sol.verts)
+    assert np.abs(plain / rest - 1).max() > 0.3                 # the squash changes them a lot
+    assert np.abs(out / rest - 1).max() <= 1e-5, np.abs(out / rest - 1).max()

@@ -213,39 +213,52 @@ class CompiledSteps(Steps):
 
     capabilities = CAPABILITIES
 
-    def __init__(self, binding):
+    def __init__(self, binding, dtype=None):
         super().__init__()
         b = self.b = binding
         self.K = _state["kernels"]
-        self.float32 = b.dtype == np.float32
-        self.X = b.x0.copy()
+        dtype = np.dtype(b.dtype if dtype is None else dtype)
+        self.float32 = dtype == np.float32
+        if dtype == b.dtype:
+            self.params, self.x0 = b.params, b.x0
+        else:   # the binding's values, computed with in another precision (`in_float64`)
+            self.params, self.x0 = b.params.astype(dtype), b.x0.astype(dtype)
+        self.X = self.x0.copy()
         lat = b.lattice
-        self.coef = solve_kernels.constants(lat.interpolation, b.dtype)
+        self.coef = solve_kernels.constants(lat.interpolation, dtype)
         self.shape = np.array(lat.shape, np.int64)
         self.n_blocks = len(b.block_cell)
+
+    def in_float64(self):
+        """Steps of the same binding computed in float64 (a float32 binding's cell coordinates and
+        rest coordinates as stored, the products and coordinates in float64): for the solve's
+        joint steps over many small islands, whose float32 coordinates round at about 1e-7 of the
+        lattice's size, more than a small body's volume allows. Their vertices are the deformation
+        of the same weights, so they keep the volume the solve measured."""
+        return self if not self.float32 else CompiledSteps(self.b, np.float64)
 
     def _blocks(self, fn):
         parallel.run(lambda p: fn(p.start, p.stop), self.b.block_parts)
 
     def _forward(self, components, D):
         b, K = self.b, self.K
-        Dt = np.ascontiguousarray(D.T, dtype=b.dtype)
+        Dt = np.ascontiguousarray(D.T, dtype=self.X.dtype)
         comps = np.array(components, np.int64)
-        self._blocks(lambda b0, b1: K["forward"](b.params, self.coef, b.block_cell, self.shape, Dt,
-                                                 b.x0, comps, self.X, b0, b1))
+        self._blocks(lambda b0, b1: K["forward"](self.params, self.coef, b.block_cell, self.shape, Dt,
+                                                 self.x0, comps, self.X, b0, b1))
 
     def _pass(self, xp, xq, x0a):
         b, K = self.b, self.K
         start, inc = incidence(b)
         out = _Gradient(b.x0.shape[1], self.n_blocks)
-        self._blocks(lambda b0, b1: K["gradient_transpose"](xp, xq, start, inc, b.params, self.coef,
+        self._blocks(lambda b0, b1: K["gradient_transpose"](xp, xq, start, inc, self.params, self.coef,
                                                             x0a, out.g, out.T, out.sums, b0, b1))
         return out
 
     def axis_gradient(self, axis, D):
         a1, a2 = (axis + 1) % 3, (axis + 2) % 3
         self.refresh((a1, a2), D)
-        return self._pass(self.X[a1], self.X[a2], self.b.x0[axis])
+        return self._pass(self.X[a1], self.X[a2], self.x0[axis])
 
     def direction_gradient(self, p, q, D):
         self.refresh((0, 1, 2), D)
@@ -285,9 +298,9 @@ class CompiledSteps(Steps):
 
     def add_along(self, e, t):
         b = self.b
-        field = np.zeros((1, b.x0.shape[1]), b.dtype)
-        d = np.asarray(t, b.dtype)[None]
-        self._blocks(lambda b0, b1: self.K["forward"](b.params, self.coef, b.block_cell, self.shape, d,
+        field = np.zeros((1, b.x0.shape[1]), self.X.dtype)
+        d = np.asarray(t, self.X.dtype)[None]
+        self._blocks(lambda b0, b1: self.K["forward"](self.params, self.coef, b.block_cell, self.shape, d,
                                                       field, np.zeros(1, np.int64), field, b0, b1))
         self.X += (e[:, None] * field).astype(self.X.dtype)
 

@@ -602,6 +602,8 @@ def main(argv=None):
     ap.add_argument("--no-stack", action="store_true", help="skip the modifier-stack frame_set figures")
     ap.add_argument("--stack-only", action="store_true",
                     help="only the modifier-stack figures (benchmarks/stack_benchmark.py)")
+    ap.add_argument("--no-scaling", action="store_true",
+                    help="skip the table of the core's solve and re-embedding on 1, 2, ... all cores")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     if not sizes or args.repeat < 1:
@@ -630,6 +632,7 @@ def main(argv=None):
     cages = None if args.no_cage else cage_figures(sizes, args.repeat)
     convergence = None if args.no_cage else cage_convergence()
     stack = stack_figures() if use_blender and not args.no_stack else None
+    scaling = None if args.no_scaling else scaling_figures()
     report = {
         "benchmark": "vpffd",
         "lattice": {"shape": list(LATTICE_SHAPE), "interpolation": "BSPLINE", "bounds": [[-0.5] * 3, [0.5] * 3],
@@ -642,6 +645,7 @@ def main(argv=None):
         "cages": cages,
         "cage_convergence": convergence,
         "stack": stack,
+        "scaling": scaling,
         "total_seconds": None,
     }
     report["total_seconds"] = time.perf_counter() - t0
@@ -666,6 +670,15 @@ def _emit(report, out):
 def _install_extension():
     _extension_engine()
     return _EXTENSION["module"]
+
+
+def scaling_figures():
+    """The core's XYZ solve and re-embedding on 1, 2, ... all cores (benchmarks/scaling.py); the
+    table goes to stderr."""
+    from benchmarks import scaling
+    report = scaling.run()
+    log("  scaling with the worker threads:\n" + scaling.markdown(report))
+    return report
 
 
 def stack_figures():

@@ -16,7 +16,7 @@ stay bit-identical to one render on the same machine).
 import numpy as np
 
 from . import layout_kernels, parallel, solve_kernels
-from .bases import CARDINAL_FC, axis_cells, axis_taps
+from .bases import axis_cells
 from .steps import CAPABILITIES, NumpySteps, Steps
 from .volume import face_volumes
 
@@ -107,27 +107,13 @@ def _smoke(kernels):
     # The layout kernels must give NumPy's values bit for bit (binds are compared array by array
     # in the tests); here a few coordinates in, at the edges of and outside a small axis.
     x = np.array([-0.9, -0.5, -0.31, 0.0, 0.2, 0.5, 0.77, 1.6])
-    for kind, code in layout_kernels.KIND_CODES.items():
-        for n in (2, 3, 5):
-            first, w, cell, t = np.empty(len(x), np.int64), np.empty((len(x), 4)), np.empty(len(x), np.int64), np.empty(len(x))
-            kernels["axis_taps"](x, n, -0.5, 0.5, code, CARDINAL_FC.get(kind, 0.0), first, w, cell, t)
-            ref_first, ref_w = axis_taps(x, n, -0.5, 0.5, kind)
-            ref_cell, ref_t = axis_cells(x, n, -0.5, 0.5)
-            if not (np.array_equal(first, ref_first) and np.array_equal(w, ref_w)
-                    and np.array_equal(cell, ref_cell) and np.array_equal(t, ref_t)):
-                raise RuntimeError(f"the {kind} taps of a {n}-point axis differ from NumPy's")
-    coords = np.array([[0.0, 1.0, 0.0, 0.3], [0.0, 0.0, 1.0, 0.2], [0.0, 0.0, 0.0, 1.1]])
-    tris_t = np.array([[0, 1, 3], [1, 2, 2], [2, 3, 0]], np.int64)
-    vol = np.empty(3)
-    kernels["face_volumes"](np.ascontiguousarray(coords.T), tris_t, vol, 0, 3)
-    if not np.array_equal(vol, face_volumes(coords, tris_t)):
-        raise RuntimeError("the faces' volume terms differ from NumPy's")
+    for n in (2, 3, 5):
+        cell, t = np.empty(len(x), np.int64), np.empty(len(x))
+        kernels["axis_cells"](x, n, -0.5, 0.5, cell, t)
+        if not all(np.array_equal(a, b) for a, b in zip((cell, t), axis_cells(x, n, -0.5, 0.5))):
+            raise RuntimeError(f"the cells of a {n}-point axis differ from NumPy's")
     # A bind's other kernels, with the argument types a bind gives them (each signature compiles
     # once: here, not in the first frame).
-    cell, t = np.empty(len(x), np.int64), np.empty(len(x))
-    kernels["axis_cells"](x, 5, -0.5, 0.5, cell, t)
-    if not all(np.array_equal(a, b) for a, b in zip((cell, t), axis_cells(x, 5, -0.5, 0.5))):
-        raise RuntimeError("the cells of an axis differ from NumPy's")
     order = np.argsort(cell, kind="stable")
     runs = np.flatnonzero(np.r_[True, cell[order][1:] != cell[order][:-1]])
     lengths = np.diff(np.r_[runs, len(x)])
@@ -135,8 +121,15 @@ def _smoke(kernels):
     kernels["slots"](order, runs, lengths, np.arange(len(runs)), 8, slot, sorted_slot)
     if not np.array_equal(slot[order] // 8, np.repeat(np.arange(len(runs)), lengths)):
         raise RuntimeError("the slots of the runs are not in their blocks")
+    coords = np.array([[0.0, 1.0, 0.0, 0.3], [0.0, 0.0, 1.0, 0.2], [0.0, 0.0, 0.0, 1.1]])
+    tris_t = np.array([[0, 1, 3], [1, 2, 2], [2, 3, 0]], np.int64)
+    vol = np.empty(3)
+    kernels["face_volumes"](np.ascontiguousarray(coords.T), tris_t, vol, 0, 3)
+    if not np.array_equal(vol, face_volumes(coords, tris_t)):
+        raise RuntimeError("the faces' volume terms differ from NumPy's")
+    n_slots = 8 * len(runs)
     for dtype in (np.float32, np.float64):
-        params, influence, x0 = np.zeros((4, 8 * len(runs)), dtype), np.zeros(8 * len(runs), dtype), np.zeros((3, 8 * len(runs)), dtype)
+        params, influence, x0 = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype), np.zeros((3, n_slots), dtype)
         kernels["slot_params"](slot, t, t, t, np.ones(len(x)), params, influence)
         kernels["slot_coords"](slot, np.stack([x, x, x], 1), x0)
         if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))):

@@ -21,60 +21,6 @@ def define(njit):
     """The kernels, compiled by `njit`: {name: function}."""
 
     @njit
-    def axis_taps(x, n, lo, hi, kind, fc, first, w, cell, tt):
-        # One axis of `bases.axis_taps` for a local kind (n >= 2): first (V,) int64 and w (V, 4)
-        # float64 written in place. Blender's clamped taps are folded onto offsets 0..3 of `first`.
-        # Also the unclamped cell (V,) int64 and t (V,) float64 of `bases.axis_cells`.
-        du = (hi - lo) / (n - 1)
-        top = n + 2.0
-        sixth = 1.0 / 6.0
-        fold = np.zeros(4)
-        for v in range(x.shape[0]):
-            u = (x[v] - lo) / du
-            if u < -3.0:
-                u = -3.0
-            elif u > top:
-                u = top
-            fi = np.floor(u)
-            t = u - fi
-            i = int(fi)
-            cell[v] = i
-            tt[v] = t
-            if kind == 0:
-                w0, w1, w2, w3 = 0.0, 1.0 - t, t, 0.0
-            elif kind == 2:
-                t2 = t * t
-                t3 = t2 * t
-                s = 1.0 - t
-                w0 = s * s * s * sixth
-                w1 = (3.0 * t3 - 6.0 * t2 + 4.0) * sixth
-                w2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) * sixth
-                w3 = t3 * sixth
-            else:
-                t2 = t * t
-                t3 = t2 * t
-                w0 = -fc * t3 + 2.0 * fc * t2 - fc * t
-                w1 = (2.0 - fc) * t3 + (fc - 3.0) * t2 + 1.0
-                w2 = (fc - 2.0) * t3 + (3.0 - 2.0 * fc) * t2 + fc * t
-                w3 = fc * t3 - fc * t2
-            f = min(max(i, 0), n - 1) - 1
-            first[v] = f
-            if i < 1 or i > n - 3:
-                for k in range(4):
-                    fold[k] = 0.0
-                fold[min(max(i - 1, 0), n - 1) - f] += w0
-                fold[min(max(i, 0), n - 1) - f] += w1
-                fold[min(max(i + 1, 0), n - 1) - f] += w2
-                fold[min(max(i + 2, 0), n - 1) - f] += w3
-                for k in range(4):
-                    w[v, k] = fold[k]
-            else:
-                w[v, 0] = w0
-                w[v, 1] = w1
-                w[v, 2] = w2
-                w[v, 3] = w3
-
-    @njit
     def slots(order, run_start, run_len, first_block, bs, slot, sorted_slot):
         # The slot of every vertex (slot, by vertex) and of every sorted position (sorted_slot):
         # runs cut into blocks of bs. Counters, not j // bs and j % bs: an integer division per
@@ -142,5 +88,5 @@ def define(njit):
             cell[v] = int(fi)
             tt[v] = u - fi
 
-    return {"axis_taps": axis_taps, "slots": slots, "slot_params": slot_params, "slot_coords": slot_coords,
+    return {"slots": slots, "slot_params": slot_params, "slot_coords": slot_coords,
             "face_volumes": face_volumes, "axis_cells": axis_cells}

@@ -270,7 +270,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     local = all(len(tap) > 2 for tap in taps)
     b._source = (verts, s)              # for what is made on first use (`_LAZY`)
     if kernels:
-        faces = _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels)
+        faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels)
     else:
         _numpy_blocks(b, taps, s, runs, n_blocks)
         if local:
@@ -368,19 +368,22 @@ def _numpy_weights(b, taps, s, n_blocks):
     b.ww = per_block(taps[2][1] * s[:, None])
 
 
-def _compiled_layout(b, taps, s, runs, n_blocks, rel, kernels):
-    """The slots, the per-slot parameters of the compiled solve (`params`) and `slot_faces` by the
-    compiled kernels; NumPy's stored weights are left to be made if something asks for them
-    (`Binding._materialise`). Returns `slot_faces`'s result."""
+def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
+    """The slots, what every slot holds (the compiled solve's `params`, the influence and x0) and
+    the faces' volumes (`face_volume_sums`), by the compiled kernels, the last two side by side;
+    NumPy's stored weights are left to be made if something asks for them
+    (`Binding._materialise`). Returns (face_vol, sums) as `slot_faces`."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
     b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
     kernels["slots"](*runs, bs, b.slot, sorted_slot)
-    b.slot_influence = np.zeros(n_slots, dt)
-    b.params = np.zeros((4, n_slots), dt)
+    b.slot_influence, b.params, b.x0 = np.zeros(n_slots, dt), np.zeros((4, n_slots), dt), np.zeros((3, n_slots), dt)
+    shape = np.array(lattice.shape, np.int64)
+    rel = np.ascontiguousarray(rel)
 
-    def params():
-        kernels["slot_params"](b.slot, taps[0][3], taps[1][3], taps[2][3], s, b.params, b.slot_influence)
-    jobs = [lambda: slot_faces(b, rel, n_slots, kernels), params]
+    def values():
+        kernels["sorted_values"](runs[0], sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, b.params,
+                                 b.slot_influence, b.x0)
+    jobs = [lambda: face_volume_sums(b, rel, kernels), values]
     if b.n_verts >= parallel.MIN_VERTS_PER_PART:
         return parallel.run(lambda job: job(), jobs)[0]
     return [job() for job in jobs][0]
@@ -439,33 +442,36 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
     return verts, tris, s, labels, rel
 
 
-def slot_faces(b, rel, n_slots, kernels=None):
+def slot_faces(b, rel, n_slots):
     """The rest coordinates in slot order and the faces' volumes (from the coordinates relative to
-    the volume origins `rel` (V, 3)), once `b.slot` (V,) is known: sets b.x0 and returns (face_vol (F,), sums (2, n_islands)): the faces' float64 volume terms in
-    their own order, and per island their sum and the sum of their absolute values. By the
-    compiled layout kernels when `kernels` are given (bit for bit the same)."""
-    slot = b.slot
-    # Rest coordinates in slot order in the binding's precision (the same rounding as storing the
-    # float64 ones straight into it); the volume terms from the float64 ones in vertex order.
+    the volume origins `rel` (V, 3)), once `b.slot` (V,) is known, in NumPy: sets b.x0 (in the
+    binding's precision: the same rounding as storing the float64 ones straight into it) and
+    returns `face_volume_sums`."""
+    coords = np.zeros((3, n_slots))
+    coords[:, b.slot] = rel.T
+    b.x0 = coords.astype(b.dtype)
+    return face_volume_sums(b, rel)
+
+
+def face_volume_sums(b, rel, kernels=None):
+    """(face_vol (F,), sums (2, n_islands)): the faces' float64 volume terms in their own order
+    from the coordinates relative to the volume origins `rel` (V, 3), and per island their sum and
+    the sum of their absolute values (summed in the faces' own order, whatever laid the slots
+    out). By the compiled kernel when `kernels` are given (bit for bit the same)."""
     tris_t = b.topology.tris_t
-    F = tris_t.shape[1]
-    face_vol = np.empty(F)
-    face_parts = parallel.split(F, b.n_verts)
+    face_vol = np.empty(tris_t.shape[1])
+    face_parts = parallel.split(tris_t.shape[1], b.n_verts)
     if kernels:
-        b.x0 = np.zeros((3, n_slots), b.dtype)
-        kernels["slot_coords"](slot, rel, b.x0)
         rel = np.ascontiguousarray(rel)
         parallel.run(lambda fs: kernels["face_volumes"](rel, tris_t, face_vol, fs.start, fs.stop), face_parts)
     else:
-        coords = np.zeros((3, n_slots))
-        coords[:, slot] = rel.T
-        b.x0 = coords.astype(b.dtype)
         cols = np.ascontiguousarray(rel.T)
 
         def volumes(fs):
             face_vol[fs] = face_volumes(cols, tris_t[:, fs])
         parallel.run(volumes, face_parts)
-    # Summed in the faces' own order (bincount is sequential), whatever laid the slots out.
+    if b.n_islands == 1:            # (a weighted bincount costs ten sums)
+        return face_vol, np.array([[face_vol.sum()], [np.abs(face_vol).sum()]])
     island = b.topology.face_island
     return face_vol, np.stack([np.bincount(island, face_vol, b.n_islands),
                                np.bincount(island, np.abs(face_vol), b.n_islands)])

@@ -130,8 +130,9 @@ def _smoke(kernels):
     n_slots = 8 * len(runs)
     for dtype in (np.float32, np.float64):
         params, influence, x0 = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype), np.zeros((3, n_slots), dtype)
-        kernels["slot_params"](slot, t, t, t, np.ones(len(x)), params, influence)
-        kernels["slot_coords"](slot, np.stack([x, x, x], 1), x0)
+        xyz = np.stack([x, x, x], 1)
+        kernels["sorted_values"](order, sorted_slot, xyz, xyz, np.ones(len(x)), np.array([5, 5, 5], np.int64),
+                                 np.full(3, -0.5), np.full(3, 0.5), params, influence, x0)
         if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))):
             raise RuntimeError("the per-slot values are not at their slots")
         _smoke_solve(kernels, dtype)

@@ -37,25 +37,30 @@ def define(njit):
                 pos += 1
 
     @njit
-    def slot_params(slot, tu, tv, tw, s, params, influence):
-        # The compiled solve's per-slot parameters (4, n_slots): each vertex's t along the three
-        # axes and its influence s, in the binding's precision, at its slot; influence (n_slots,).
-        for v in range(slot.shape[0]):
-            sl = slot[v]
-            params[0, sl] = tu[v]
-            params[1, sl] = tv[v]
-            params[2, sl] = tw[v]
+    def sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, params, influence, x0):
+        # Everything a slot holds, written in slot order from the vertices taken in sorted order
+        # (a row read each, where writing at scattered slots would touch a line per row of the
+        # outputs): the compiled solve's per-slot parameters (4, n_slots) (t along each axis, as
+        # `bases.axis_cells`, and the influence s), the influence (n_slots,) and the rest
+        # coordinates x0 (3, n_slots) relative to the volume origins (rel (V, 3)), in the
+        # binding's precision.
+        du0 = (hi[0] - lo[0]) / (shape[0] - 1)
+        du1 = (hi[1] - lo[1]) / (shape[1] - 1)
+        du2 = (hi[2] - lo[2]) / (shape[2] - 1)
+        for i in range(order.shape[0]):
+            v = order[i]
+            sl = sorted_slot[i]
+            for a in range(3):
+                du = du0 if a == 0 else (du1 if a == 1 else du2)
+                u = (verts[v, a] - lo[a]) / du
+                if u < -3.0:
+                    u = -3.0
+                elif u > shape[a] + 2.0:
+                    u = shape[a] + 2.0
+                params[a, sl] = u - np.floor(u)
+                x0[a, sl] = rel[v, a]
             params[3, sl] = s[v]
             influence[sl] = s[v]
-
-    @njit
-    def slot_coords(slot, rel, x0):
-        # x0 (3, n_slots) in the binding's precision, from the coordinates relative to the volume
-        # origins rel (V, 3); padding slots stay zero.
-        for v in range(slot.shape[0]):
-            sl = slot[v]
-            for c in range(3):
-                x0[c, sl] = rel[v, c]
 
     @njit
     def face_volumes(rel, tris_t, face_vol, f0, f1):
@@ -88,5 +93,5 @@ def define(njit):
             cell[v] = int(fi)
             tt[v] = u - fi
 
-    return {"slots": slots, "slot_params": slot_params, "slot_coords": slot_coords,
+    return {"slots": slots, "sorted_values": sorted_values,
             "face_volumes": face_volumes, "axis_cells": axis_cells}

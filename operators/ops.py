@@ -94,7 +94,7 @@ class OBJECT_OT_vpffd_save_shape_key(_BoundOperator, bpy.types.Operator):
 
 
 class OBJECT_OT_vpffd_check_folds(_BoundOperator, bpy.types.Operator):
-    """Count the vertices where the lattice folds space (Jacobian determinant <= 0)"""
+    """Count the vertices where the lattice folds space: turned inside out against the rest (a mirror alone folds nothing)"""
     bl_idname = "object.vpffd_check_folds"
     bl_label = "Check Folds"
     bl_options = {"REGISTER"}

@@ -169,9 +169,9 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Where the per-frame solve runs")
     use_fold_attribute: BoolProperty(
         name="Fold Attribute", default=False, update=_settings_changed,
-        description="Write the deformation's Jacobian determinant per vertex to the attribute "
-                    "'vpffd_jacobian' (<= 0 where the lattice folds space), to colour the mesh by "
-                    "it; costs about one more solve per update")
+        description="Write each vertex's Jacobian determinant to the attribute 'vpffd_jacobian', to "
+                    "colour the mesh by it: negative where the lattice turns space over (at folds, or "
+                    "everywhere under a mirror); costs about one more solve")
     show_overlay: BoolProperty(
         name="Show Corrected Lattice", default=False, update=_redraw,
         description="Draw the corrected lattice the solver used, and the volume percentage, "

@@ -300,7 +300,8 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
 
     finish(b, rel, tris, labels, n_slots, faces)
     b.block_parts = parallel.split(n_blocks, V)
-    b.n_outside = lattice.outside_count(verts)
+    if not kernels:                 # (the compiled layout counted them on its way)
+        b.n_outside = lattice.outside_count(verts)
     return b
 
 
@@ -381,8 +382,8 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
     rel = np.ascontiguousarray(rel)
 
     def values():
-        kernels["sorted_values"](runs[0], sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, b.params,
-                                 b.slot_influence, b.x0)
+        b.n_outside = kernels["sorted_values"](runs[0], sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi,
+                                               1e-6 * lattice.size, b.params, b.slot_influence, b.x0)
     jobs = [lambda: face_volume_sums(b, rel, kernels), values]
     if b.n_verts >= parallel.MIN_VERTS_PER_PART:
         return parallel.run(lambda job: job(), jobs)[0]

@@ -131,9 +131,10 @@ def _smoke(kernels):
     for dtype in (np.float32, np.float64):
         params, influence, x0 = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype), np.zeros((3, n_slots), dtype)
         xyz = np.stack([x, x, x], 1)
-        kernels["sorted_values"](order, sorted_slot, xyz, xyz, np.ones(len(x)), np.array([5, 5, 5], np.int64),
-                                 np.full(3, -0.5), np.full(3, 0.5), params, influence, x0)
-        if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))):
+        outside = kernels["sorted_values"](order, sorted_slot, xyz, xyz, np.ones(len(x)), np.array([5, 5, 5], np.int64),
+                                           np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0)
+        if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))
+                and outside == 3):                  # (-0.9, 0.77 and 1.6)
             raise RuntimeError("the per-slot values are not at their slots")
         _smoke_solve(kernels, dtype)
 

@@ -37,20 +37,26 @@ def define(njit):
                 pos += 1
 
     @njit
-    def sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, params, influence, x0):
+    def sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, eps, params, influence, x0):
         # Everything a slot holds, written in slot order from the vertices taken in sorted order
         # (a row read each, where writing at scattered slots would touch a line per row of the
         # outputs): the compiled solve's per-slot parameters (4, n_slots) (t along each axis, as
         # `bases.axis_cells`, and the influence s), the influence (n_slots,) and the rest
         # coordinates x0 (3, n_slots) relative to the volume origins (rel (V, 3)), in the
-        # binding's precision.
+        # binding's precision. Returns how many vertices lie outside the lattice's box by more
+        # than eps, as `Lattice.outside_count` (an axis of one point has no outside).
+        outside = 0
         du0 = (hi[0] - lo[0]) / (shape[0] - 1)
         du1 = (hi[1] - lo[1]) / (shape[1] - 1)
         du2 = (hi[2] - lo[2]) / (shape[2] - 1)
         for i in range(order.shape[0]):
             v = order[i]
             sl = sorted_slot[i]
+            out = False
             for a in range(3):
+                x = verts[v, a]
+                if shape[a] > 1 and (x < lo[a] - eps or x > hi[a] + eps):
+                    out = True
                 du = du0 if a == 0 else (du1 if a == 1 else du2)
                 u = (verts[v, a] - lo[a]) / du
                 if u < -3.0:
@@ -61,6 +67,9 @@ def define(njit):
                 x0[a, sl] = rel[v, a]
             params[3, sl] = s[v]
             influence[sl] = s[v]
+            if out:
+                outside += 1
+        return outside
 
     @njit
     def face_volumes(rel, tris_t, face_vol, f0, f1):

@@ -82,9 +82,9 @@ def status_lines(info, using_cache, backend):
     if info.editing:
         out.append(("Edit Mode: solved live from the mesh as edited", "EDITMODE_HLT"))
     warned = problems(info)
-    if info.volume_percent is not None:
-        # The volume itself is on the first line; here what the plain lattice gives. A check
-        # mark only where nothing went wrong (never beside a refused correction).
+    if info.volume_percent is not None and info.plain_percent != info.volume_percent:
+        # The volume itself is on the first line; here what the plain lattice gives, where it
+        # differs. A check mark only where nothing went wrong (never beside a missed target).
         out.append((f"the plain Lattice modifier would give {percent(info.plain_percent)} of "
                     f"{reference_words(info)}", "INFO" if warned else "CHECKMARK"))
     if info.seconds is not None:

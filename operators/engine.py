@@ -217,6 +217,7 @@ class _Bound:
         self.signature = None
         self.result = None
         self.output = None      # (V, 3) float32 slot output of the last solve
+        self.moved = 0.0        # the largest offset of the last solve (tells Apply from removal)
         self.written = None     # offsets last written to the solver helper
         self.overlay = None
         self.gpu = None         # GPUSolver for the current binding, made on first GPU use
@@ -767,6 +768,7 @@ def _publish(obj, state, frame, result, t0):
     # after the evaluation that the change brings.
     state.signature, state.result = (None if frame.stale_weights else frame.signature), result
     state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
+    state.moved = float(np.abs(offsets32).max()) if len(offsets32) else 0.0
     edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
     state.overlay = (meshio.transform(result.points, frame.lattice_matrix), edges)
     state.matrix = frame.inputs.matrix      # object -> lattice space of this solve
@@ -1060,12 +1062,10 @@ def _shows_last_solve(obj):
     Apply wrote it), rather than the undeformed input (the modifier was removed)."""
     state = _cache.get(obj.session_uid)
     out = None if state is None else state.output
-    if out is None or state.written is None or len(out) != len(obj.data.vertices) or not len(out):
+    if out is None or len(out) != len(obj.data.vertices) or not len(out):
         return False
     size = float(np.ptp(out, 0).max()) or 1.0
-    co = meshio.mesh_coords(obj.data)
-    return (np.abs(state.written).max() > 1e-5 * size
-            and np.abs(co - out).max() <= 1e-6 * size)
+    return state.moved > 1e-5 * size and np.abs(meshio.mesh_coords(obj.data) - out).max() <= 1e-6 * size
 
 
 def _note_applied(obj):

@@ -41,14 +41,24 @@ MUTATIONS = {
         '        if event.type == "NONE_SUCH" and event.value == "PRESS":',
         ["tests/e2e/test_gui_window.py"], {"VPFFD_NO_E2E": ""}),
     "compiled-gradient-scale": (
-        "vpffd_addon/compiled.py",
-        "            g[i] *= 1.0 / 6.0",
-        "            g[i] *= 1.0 / 6.00001",
+        "vpffd_addon/solve_kernels.py",
+        "            gv = acc * (1.0 / 6.0)",
+        "            gv = acc * (1.0 / 6.00001)",
         ["tests/test_core_compiled.py", "tests/test_compiled_blender.py"], {}),
+    "compiled-transpose-axis": (
+        "vpffd_addon/solve_kernels.py",
+        "                h[s] = ww[k, s] * wv[j, s] * gs[s]",
+        "                h[s] = ww[k, s] * wv[k, s] * gs[s]",
+        ["tests/test_core_compiled.py"], {}),
     "compiled-bind-influence": (
         "vpffd_addon/layout_kernels.py",
-        "wws[blk, k, pos] = ww[v, k] * s[v]",
-        "wws[blk, k, pos] = ww[v, k]",
+        "            params[3, sl] = s[v]",
+        "            params[3, sl] = 1.0",
+        ["tests/test_core_compiled.py"], {}),
+    "islands-float32": (
+        "vpffd_addon/solve.py",
+        "        st.in_float64()\n",
+        "        pass\n",
         ["tests/test_core_compiled.py"], {}),
     "target-bind-from-result": (
         "operators/engine.py",
@@ -115,6 +125,16 @@ MUTATIONS = {
         "    unbind(obj)\n    _note_applied(obj)",
         "    unbind(obj)",
         ["tests/test_panel_blender.py", "-k", "after_apply"], {}),
+    "fit-poll-silent": (
+        "operators/fit.py",
+        "            cls.poll_message_set(why)",
+        "            pass",
+        ["tests/test_panel_blender.py", "-k", "says_why"], {}),
+    "compiling-unsaid": (
+        "operators/status_line.py",
+        '    if kernels == "compiling" and info.awaits_kernels:',
+        "    if False:",
+        ["tests/test_panel_blender.py", "-k", "compile"], {}),
     "demo-view-kept": (
         "operators/demos.py",
         "        _frame_views(context, user_scene if scene != user_scene else None)",

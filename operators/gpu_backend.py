@@ -154,11 +154,11 @@ def supports(options=None, binding=None):
 
 
 def _binding_fits(b):
-    if not hasattr(b, "ww"):
+    if not hasattr(b, "weight_shape"):
         return False, "cages are solved on the CPU (the GPU path does Lattice objects)"
-    Kw, Kuv = b.ww.shape[1], b.wuv.shape[1]
+    n_blocks, Kw, Kuv = b.weight_shape           # (without making the weights: a CPU solve needs none)
     n_slots = b.x0.shape[1]
-    sizes = {"weights": n_slots * Kuv, "one-ring": 3 * b.n_faces, "pieces": b.ww.shape[0] * Kw * Kuv}
+    sizes = {"weights": n_slots * Kuv, "one-ring": 3 * b.n_faces, "pieces": n_blocks * Kw * Kuv}
     for what, n in sizes.items():
         if n >= MAX_INDEX or -(-n // TW) > 16384:
             return False, f"the binding is too large for the GPU path ({what}: {n} entries)"

@@ -231,3 +231,15 @@ def test_many_small_islands_keep_their_volumes_in_float32(kernels):
     rest, plain, out = volumes(verts), volumes(b.deform(P)), volumes(sol.verts)
     assert np.abs(plain / rest - 1).max() > 0.3                 # the squash changes them a lot
     assert np.abs(out / rest - 1).max() <= 1e-5, np.abs(out / rest - 1).max()
+
+
+def test_a_compiled_solve_makes_none_of_numpys_stored_weights(kernels):
+    # What a mesh moving through the lattice pays every frame: a re-embedding and a solve read the
+    # cells and faces around the slots only (NumPy's weights and sorted faces would cost more than
+    # the solve).
+    b, P = _problem(np.float32, islands=True)
+    moved = vp.bind(b.lattice, b._source[0] + 0.01, b.topology.tris, dtype=np.float32, topology=b.topology)
+    for options in ({"axes": "XYZ"}, {"axes": "XY", "islands": True}, {"axes": "", "preserve_volume": False}):
+        moved.solve(P, **options)
+    assert not {"wuv", "ww", "corner_parts"} & set(vars(moved))
+    assert moved.weight_shape == moved.ww.shape[:2] + (moved.wuv.shape[1],)     # (made now)

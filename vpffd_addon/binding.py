@@ -149,6 +149,13 @@ class Binding(BindingBase):
 
     _LAZY = BindingBase._LAZY + ("wuv", "ww")
 
+    @property
+    def weight_shape(self):
+        """(n_blocks, Kw, Kv * Ku): the shape of NumPy's stored weights per block (`ww` has Kw rows
+        a block, `wuv` Kv * Ku), known without making them."""
+        Ku, Kv, Kw = (tap_count(n, kind) for n, kind in zip(self.lattice.shape, self.lattice.interpolation))
+        return len(self.block_run), Kw, Kv * Ku
+
     def _materialise(self, name):
         if name in ("wuv", "ww"):
             verts, s = self._source

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import lattice_eval
+from . import lattice_eval, parallel
 from .binder import bind
 from .cage import Cage
 from .falloff import outside_factor
@@ -98,6 +98,21 @@ class FrameResult:
     target_given: bool = False     #: whether the given target_volumes were kept (not the input's)
 
 
+def _affine(points, mat):
+    """`linalg3.affine` split over the worker threads (two of these a frame, each several passes
+    over the whole mesh): (V, 3) float64."""
+    points = np.asarray(points)
+    parts = parallel.split(len(points), len(points))
+    if len(parts) == 1:
+        return affine(points, mat)
+    out = np.empty((len(points), 3))
+
+    def part(vs):
+        out[vs] = affine(points[vs], mat)
+    parallel.run(part, parts)
+    return out
+
+
 def _keep_still(positions, inputs, influence):
     """(positions with every position of zero influence set back to exactly its input, how many
     there are): no influence, no motion, not even the rounding of two transforms."""
@@ -133,7 +148,7 @@ class Pipeline:
         if last is not None and last[1].shape == X.shape and np.array_equal(last[0], M) \
                 and np.array_equal(last[1], X):
             return last[2]
-        verts = affine(X.astype(np.float64), M)
+        verts = _affine(X, M)
         self._last_space = (M.copy(), X.copy(), verts)
         return verts
 
@@ -200,7 +215,7 @@ class Pipeline:
                 raise ValueError("no faces: the volume cannot be corrected")
             out = verts + influence[:, None] * lattice_eval.interpolate(lat, verts, P_used - grid)
             outside = lat.outside_count(verts) if isinstance(lat, Lattice) else 0
-            positions, still = _keep_still(affine(out, back), inp.positions, influence)
+            positions, still = _keep_still(_affine(out, back), inp.positions, influence)
             return FrameResult(positions=positions, points=P_used, outside=outside, still=still)
         binding, rebound = self._embed(inp, verts, influence)
         warnings = []
@@ -233,7 +248,7 @@ class Pipeline:
         else:
             sol = binding.solve(P_used, axes="", preserve_volume=False)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
-        positions, still = _keep_still(affine(out, back), inp.positions, influence)
+        positions, still = _keep_still(_affine(out, back), inp.positions, influence)
         falloff = 0 if factor is None else int(((factor > 0) & (factor < 1)).sum())
         beyond = 0 if factor is None else int((factor == 0).sum())
         return FrameResult(positions=positions, points=used, input_volume=binding.rest_volume,

@@ -145,12 +145,16 @@ class _State:
 
     def in_float64(self):
         """Go on with float64 steps where the steps offer them (`in_float64`): the joint steps over
-        islands, whose small bodies' volumes float32 coordinates cannot resolve to the tolerance."""
+        islands, whose small bodies' volumes float32 coordinates cannot resolve to the tolerance.
+        A volume then counts as met at a tenth of the float32 tolerance (what is left for the
+        rounding of the result to float32). Returns whether it switched."""
         to64 = getattr(self.k, "in_float64", None)
-        if to64 is not None and self.k.float32:
-            self.k = to64()
-            self.degenerate, self.met_rel = tol.DEGENERATE_REL_F64, tol.MET_REL_F64
-            self._last_gradient = None
+        if to64 is None or not self.k.float32:
+            return False
+        self.k = to64()
+        self.degenerate, self.met_rel = tol.DEGENERATE_REL_F64, 0.1 * tol.MET_REL_F32
+        self._last_gradient = None
+        return True
 
     @property
     def _rows(self):
@@ -406,7 +410,6 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
             st.step(e, m - d, preserve_volume)
         plain = st.plain            # what the first step measured before moving anything
     elif jointly:
-        st.in_float64()
         st.start(dirs[0])
         plain = st.plain
     else:
@@ -423,12 +426,23 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         # Several volume rows (islands) or pins compete for the same control points along one
         # direction at a time; solved jointly over all directions, and iterated (each volume is
         # cubic in simultaneous moves), they meet wherever the lattice has the freedom.
+        miss = np.inf
         for _ in range(_JOINT_ITERATIONS):
             if not st.joint(dirs, preserve_volume):
                 break
             e = dirs[0]
             st.volumes = st.measure(e, *st.gradient(e), None)
-            if (not preserve_volume or st.volume_met().all()) and st.pins_met():
+            done = (not preserve_volume or st.volume_met().all()) and st.pins_met()
+            if jointly:
+                # Islands: float32 coordinates of a small body round at about 1e-5 of its
+                # volume, so the float32 iteration's end (or its stalling) is checked, and the
+                # iteration finished, in float64 where the steps offer it.
+                worst = float(np.max(np.abs(st.volumes - st.targets) / st.vol_scale))
+                if (done or worst > 0.5 * miss) and st.in_float64():
+                    st.volumes = st.measure(e, *st.gradient(e), None)
+                    done = st.volume_met().all() and st.pins_met()
+                miss = worst
+            if done:
                 st.unmet_pins.clear()
                 break
         if st.pins_met():

@@ -4,7 +4,12 @@ under 3 MB, each one present, and the window screenshots saved with the palette 
 import os
 import re
 
+import pytest
+
 from tests.e2e import screenshots
+
+# With the Blender environments (they have Pillow, which Debian's core-only Python lacks).
+pytestmark = pytest.mark.blender
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LIMIT = 3_000_000        # bytes, all the README's pictures together

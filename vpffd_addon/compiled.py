@@ -258,9 +258,7 @@ class CompiledSteps(Steps):
     def direction_gradient(self, p, q, D):
         self.refresh((0, 1, 2), D)
         X = self.X
-        # Three scaled rows rather than p @ X: a (3,) @ (3, n) product would go to BLAS. In
-        # float64, as NumPy's steps (p @ X promotes).
-        xp, xq = (e[0] * X[0] + e[1] * X[1] + e[2] * X[2] for e in (p, q))
+        xp, xq = (_along(e, X) for e in (p, q))
         return self._pass(xp, xq, np.zeros(0, X.dtype))
 
     def _per_row(self, values, rows, k):
@@ -277,8 +275,7 @@ class CompiledSteps(Steps):
 
     def x_dot(self, e, axis, g, rows, k=1, D=None):
         if axis is None:
-            X = self.X
-            values = (e[0] * X[0] + e[1] * X[1] + e[2] * X[2]) * g.g
+            values = _along(e, self.X) * g.g
         else:
             self.refresh((axis,), D)
             values = self.X[axis] * g.g
@@ -310,6 +307,14 @@ class CompiledSteps(Steps):
 
     def finite(self):
         return bool(np.isfinite(self.X).all())
+
+
+def _along(e, X):
+    """e . X (n_slots,) float64 for a direction e (3,) and slot coordinates X (3, n_slots): three
+    scaled rows rather than e @ X (a (3,) @ (3, n) product would go to BLAS), each row made float64
+    first (NumPy's steps promote through e @ X; NumPy 1.x would keep a float32 row float32 when
+    scaled by a float64 scalar)."""
+    return e[0] * X[0].astype(np.float64) + e[1] * X[1].astype(np.float64) + e[2] * X[2].astype(np.float64)
 
 
 def incidence(binding):

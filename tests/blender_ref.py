@@ -237,3 +237,19 @@ def squash_lattice(name, shape, scale, squash, bulge, shear=0.0):
     co[:, 0] += shear * co[:, 2]
     key.data.foreach_set("co", co.ravel())
     return ob, key
+
+
+def squashed_lattice(z_factor=0.5, shape=(4, 4, 4), name="Lattice"):
+    """A lattice object 2 units wide (a 4-point axis spans 3 units in its own space) linked to the
+    scene, its points' z scaled by `z_factor` (negative: a mirror; 0: flattened to zero thickness)."""
+    lt = bpy.data.lattices.new(name)
+    lt.points_u, lt.points_v, lt.points_w = shape
+    ob = bpy.data.objects.new(name, lt)
+    ob.scale = (2 / 3,) * 3
+    bpy.context.scene.collection.objects.link(ob)
+    co = np.empty(len(lt.points) * 3, np.float32)
+    lt.points.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    co[:, 2] *= z_factor
+    lt.points.foreach_set("co_deform", co.ravel())
+    return ob

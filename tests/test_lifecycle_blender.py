@@ -17,6 +17,7 @@ bpy = pytest.importorskip("bpy")
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
 from .blender_ref import bind as _bind, evaluated_volume, evaluated_world, triangle_mesh
+from .blender_ref import squashed_lattice as _lattice
 
 pytestmark = pytest.mark.blender
 
@@ -29,20 +30,6 @@ def _ball(name="Ball"):
     v, f = core.icosphere(3, 0.8)
     ob = bpy.data.objects.new(name, triangle_mesh(v, f, name))
     bpy.context.scene.collection.objects.link(ob)
-    return ob
-
-
-def _lattice(name="Lattice"):
-    lt = bpy.data.lattices.new(name)
-    lt.points_u = lt.points_v = lt.points_w = 4
-    ob = bpy.data.objects.new(name, lt)
-    ob.scale = (2 / 3,) * 3
-    bpy.context.scene.collection.objects.link(ob)
-    co = np.empty(len(lt.points) * 3, np.float32)
-    lt.points.foreach_get("co", co)
-    co = co.reshape(-1, 3)
-    co[:, 2] *= 0.5
-    lt.points.foreach_set("co_deform", co.ravel())
     return ob
 
 

@@ -25,6 +25,7 @@ bpy = pytest.importorskip("bpy")
 import vpffd_addon as core  # noqa: E402  (repository copy: only for building test meshes)
 
 from .blender_ref import bind as _bind, evaluated_volume, evaluated_world, triangle_mesh  # noqa: E402
+from .blender_ref import squashed_lattice as _lattice  # noqa: E402
 
 pytestmark = pytest.mark.blender
 
@@ -37,22 +38,6 @@ def _ball(name="Ball", radius=0.8):
     v, f = core.icosphere(3, radius)
     ob = bpy.data.objects.new(name, triangle_mesh(v, f, name))
     bpy.context.scene.collection.objects.link(ob)
-    return ob
-
-
-def _lattice(z_factor=0.5, shape=(4, 4, 4), name="Lattice"):
-    """A lattice 2 units wide (a 4-point axis spans 3 units in its own space), its points' z
-    scaled by `z_factor` (negative: a mirror; 0: flattened to zero thickness)."""
-    lt = bpy.data.lattices.new(name)
-    lt.points_u, lt.points_v, lt.points_w = shape
-    ob = bpy.data.objects.new(name, lt)
-    ob.scale = (2 / 3,) * 3
-    bpy.context.scene.collection.objects.link(ob)
-    co = np.empty(len(lt.points) * 3, np.float32)
-    lt.points.foreach_get("co", co)
-    co = co.reshape(-1, 3)
-    co[:, 2] *= z_factor
-    lt.points.foreach_set("co_deform", co.ravel())
     return ob
 
 

@@ -243,3 +243,32 @@ def test_a_compiled_solve_makes_none_of_numpys_stored_weights(kernels):
         moved.solve(P, **options)
     assert not {"wuv", "ww", "corner_parts"} & set(vars(moved))
     assert moved.weight_shape == moved.ww.shape[:2] + (moved.wuv.shape[1],)     # (made now)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_pin_rows_come_from_the_cell_coordinates_and_equal_the_forward_product(kernels, dtype):
+    # A pin's row of S B, from the slot's cell coordinates (a compiled bind makes no stored
+    # weights for it), against NumPy's forward product with the stored weights at those slots.
+    b, P = _problem(dtype)
+    D = P - b.lattice.rest_points
+    slots = b.slot[np.array([0, 7, 100, len(b.slot) - 1])]
+    rows = b._rows(slots)
+    assert not {"wuv", "ww"} & set(vars(b))
+    rel = 1e-6 if dtype == np.float32 else 1e-12
+    for c in range(3):
+        want = b._forward(D[:, c])[slots]                     # (makes the stored weights now)
+        assert np.abs(rows @ D[:, c] - want).max() <= rel * np.abs(D).max()
+
+
+def test_what_is_made_on_first_use_is_made_from_the_positions_as_bound(kernels):
+    # The caller's arrays may change after the bind: the stored weights made later are still
+    # those of the positions and weights that were bound.
+    b, _ = _problem(np.float32)
+    verts, tris = b._source[0].copy(), b.topology.tris
+    weights = np.linspace(0.2, 1.0, len(verts))
+    ref = vp.bind(b.lattice, verts, tris, dtype=np.float32, influence=weights, use_compiled=False)
+    out = vp.bind(b.lattice, verts, tris, dtype=np.float32, influence=weights)
+    verts += 0.05
+    weights[:] = 1.0
+    np.testing.assert_array_equal(out.wuv, ref.wuv)
+    np.testing.assert_array_equal(out.ww, ref.ww)

@@ -9,7 +9,7 @@ vertex, to hold memory near 100 bytes per vertex in float32.
 import numpy as np
 
 from . import compiled, parallel
-from .bases import axis_cells, axis_taps, tap_count
+from .bases import _local_weights, axis_cells, axis_taps, tap_count
 from .jacobian import lattice_jacobian_det
 from .lattice import Lattice
 from .mesh import Topology, check_verts
@@ -159,8 +159,7 @@ class Binding(BindingBase):
     def _materialise(self, name):
         if name in ("wuv", "ww"):
             verts, s = self._source
-            _numpy_weights(self, _lattice_taps(self.lattice, verts, None), s, self.block_cell.shape[0] if
-                           hasattr(self, "block_cell") else self.block_run.shape[0])
+            _numpy_weights(self, _lattice_taps(self.lattice, verts, None), s, len(self.block_run))
         else:
             super()._materialise(name)
 
@@ -224,13 +223,27 @@ class Binding(BindingBase):
         return np.bincount(self.run_idx.ravel(), self._run_transpose(g).ravel(), self.lattice.n_points)
 
     def _rows(self, slots):
-        """Rows of S B for the given vertex slots (k,): dense (k, N) float64."""
-        blk, pos = np.divmod(np.asarray(slots, dtype=np.int64), self.block_size)
-        w = (self.ww[blk, :, pos][:, :, None] * self.wuv[blk, :, pos][:, None, :]).reshape(len(blk), -1)
-        N = self.lattice.n_points
-        idx = self.run_idx[self.block_run[blk]].reshape(len(blk), -1)
-        keys = (np.arange(len(blk))[:, None] * N + idx).ravel()
-        return np.bincount(keys, w.ravel().astype(np.float64), len(blk) * N).reshape(len(blk), N)
+        """Rows of S B for the given vertex slots (k,): dense (k, N) float64. From the slots' cell
+        coordinates where the binding has them (a compiled bind then needs no stored weights for
+        the pins of a frame), else from the stored weights."""
+        slots = np.asarray(slots, dtype=np.int64)
+        blk, pos = np.divmod(slots, self.block_size)
+        N, k = self.lattice.n_points, len(slots)
+        if getattr(self, "params", None) is not None:
+            lat = self.lattice
+            # Blender's taps i-1..i+2 of each axis, clamped; (k, 4) weights and grid indices.
+            w = [_local_weights(self.params[a, slots].astype(np.float64), lat.interpolation[a], False)[0]
+                 for a in range(3)]
+            i = [np.clip(self.block_cell[blk, a, None] - 1 + np.arange(4), 0, lat.shape[a] - 1) for a in range(3)]
+            nu, nv, _ = lat.shape
+            idx = (i[2][:, :, None, None] * nv + i[1][:, None, :, None]) * nu + i[0][:, None, None, :]
+            w = (w[2][:, :, None, None] * w[1][:, None, :, None] * w[0][:, None, None, :]
+                 * self.params[3, slots, None, None, None])
+        else:
+            w = self.ww[blk, :, pos][:, :, None] * self.wuv[blk, :, pos][:, None, :]
+            idx = self.run_idx[self.block_run[blk]]
+        keys = (np.arange(k)[:, None] * N + idx.reshape(k, -1)).ravel()
+        return np.bincount(keys, w.reshape(k, -1).ravel().astype(np.float64), k * N).reshape(k, N)
 
     def _island_transpose(self, g, k):
         """(k, N) rows (S B)^T g restricted to each island's slots (islands 0..k-1)."""
@@ -275,7 +288,10 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.block_size = bs
     runs = (order, run_start, run_len, first_block)
     local = all(len(tap) > 2 for tap in taps)
-    b._source = (verts, s)              # for what is made on first use (`_LAZY`)
+    # For what is made on first use (`_LAZY`): the positions and weights as bound, copied where
+    # they are the caller's own arrays (which the caller may change after the bind).
+    b._source = tuple(a.copy() if given is not None and np.may_share_memory(a, given) else a
+                      for a, given in ((verts, rest_verts), (s, influence)))
     if kernels:
         faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels)
     else:

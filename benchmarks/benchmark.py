@@ -31,6 +31,7 @@ if _ROOT not in sys.path:
 import vpffd_addon as vp  # noqa: E402
 from vpffd_addon import compiled  # noqa: E402
 from vpffd_addon.steps import NumpySteps  # noqa: E402
+from benchmarks.timing import timed  # noqa: E402
 
 LATTICE_SHAPE = (10, 10, 10)
 RADIUS = 0.45
@@ -136,16 +137,6 @@ def cage_convergence(n=6, depths=(0, 1, 2, 3), seed=7):
               for d in depths]
     log("  cage convergence to the tricubic B-spline FFD by depth: " + ", ".join(f"{e:.2e}" for e in errors))
     return {"cage_cells": (n - 1) ** 3, "depths": list(depths), "max_error": errors}
-
-
-def timed(fn, repeat):
-    """(median ms, min ms, last result) of `repeat` calls of fn()."""
-    times, out = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times), min(times), out
 
 
 # ------------------------------------------------------------------------------------ Blender

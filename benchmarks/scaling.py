@@ -10,9 +10,7 @@ threads). The core alone (NumPy, and numba where it is installed), no Blender:
 import argparse
 import json
 import os
-import statistics
 import sys
-import time
 
 import numpy as np
 
@@ -21,18 +19,10 @@ if _ROOT not in sys.path:
     sys.path.insert(0, _ROOT)
 
 import vpffd_addon as vp  # noqa: E402
+from benchmarks.timing import timed  # noqa: E402
 from vpffd_addon import compiled, parallel  # noqa: E402
 
 LATTICE = (6, 6, 6)
-
-
-def _median_ms(fn, rounds):
-    times = []
-    for _ in range(rounds):
-        t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(times)
 
 
 def run(subdivisions=7, rounds=7, max_threads=None):
@@ -59,8 +49,8 @@ def run(subdivisions=7, rounds=7, max_threads=None):
                     compiled.incidence(moved_b)                     # what its first solve needs
             reembed()
             rows.append({"threads": n, "parts": len(b.block_parts),
-                         "solve_ms": _median_ms(lambda: b.solve(P, axes="XYZ"), rounds),
-                         "reembed_ms": _median_ms(reembed, rounds)})
+                         "solve_ms": timed(lambda: b.solve(P, axes="XYZ"), rounds)[0],
+                         "reembed_ms": timed(reembed, rounds)[0]})
     finally:
         parallel.set_workers(previous)
     for row in rows:

@@ -356,7 +356,7 @@ def bind_kernels(lattice):
     NumPy binds). They cover Blender's four-tap interpolations; an axis with one point or a
     Bernstein (BEZIER) axis binds with NumPy."""
     kernels = _state["kernels"]
-    if kernels is None or not all(n > 1 and kind in layout_kernels.KIND_CODES
+    if kernels is None or not all(n > 1 and kind in layout_kernels.LOCAL_KINDS
                                   for n, kind in zip(lattice.shape, lattice.interpolation)):
         return None
     return kernels

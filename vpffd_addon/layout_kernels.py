@@ -1,11 +1,11 @@
-"""Compiled kernels of a lattice bind: the per-axis taps and cells, the slots, the per-slot
-parameters of the compiled solve, the slot-ordered coordinates and the faces' volume terms
-(docs/performance.md, "Re-embedding").
+"""Compiled kernels of a lattice bind: the per-axis cells, the slots, what every slot holds (the
+compiled solve's per-slot parameters, the influence, the rest coordinates) and the faces' volume
+terms (docs/performance.md, "Re-embedding").
 
 A mesh that moves through the lattice is embedded anew on every frame, so these passes are
 per-frame work. Each kernel is one serial loop that writes its output in place and computes every
 value with the same operations, in the same order and precision, as the NumPy code in
-`bases.axis_taps`, `binding.bind_lattice`, `binding.slot_faces` and `volume.face_volumes`: a binding
+`bases.axis_cells`, `binding.bind_lattice`, `binding.slot_faces` and `volume.face_volumes`: a binding
 made with them is bit for bit the one NumPy makes (the tests compare every array).
 
 `define(njit)` returns the kernels by name; `compiled.py` compiles them with its own options.
@@ -13,8 +13,9 @@ Nothing here imports numba.
 """
 import numpy as np
 
-#: Kind codes of the local (four-tap) interpolations for the `axis_taps` kernel.
-KIND_CODES = {"LINEAR": 0, "CARDINAL": 1, "CATMULL_ROM": 1, "BSPLINE": 2}
+#: The local (four-tap) interpolations, whose binds these kernels lay out (the compiled solve
+#: computes their weights, `solve_kernels.constants`).
+LOCAL_KINDS = ("LINEAR", "CARDINAL", "CATMULL_ROM", "BSPLINE")
 
 
 def define(njit):

@@ -29,6 +29,7 @@ import numpy as np
 
 from .bases import CARDINAL_FC
 
+
 def constants(interpolation, dtype):
     """(3, 4, 4) in `dtype`: per axis, the coefficients of its four weights as cubics in t
     (``w_k = sum_p c[k, p] t^p``): Blender's key_curve_position_weights (`bases._local_weights`)
@@ -106,8 +107,8 @@ def taps(cell, shape, out):
 
 
 def forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1):
-    # X[c] = x0[c] + S B D[c] for c in comps, blocks b0..b1-1. D (3, N) and X, x0 (3, n_slots)
-    # in the binding's precision (X[c] may be row c of a one-row array: comps then [0]).
+    # X[comp] = x0[comp] + S B D[comp] for comp in comps, blocks b0..b1-1. D (3, N) and X, x0
+    # (3, n_slots) in the steps' precision (or one row each, comps then [0]); c: `constants`.
     bs = params.shape[1] // block_cell.shape[0]
     dt = params.dtype
     wu = np.empty((4, bs), dt)
@@ -168,8 +169,9 @@ def block_transpose(gs, bs, wu, wv, ww, h, T):
 
 def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b1):
     # Blocks b0..b1-1: g (n_slots,) float64, the volume gradient along the axis that xp, xq
-    # (n_slots,) complete (products in their precision, sums in float64, as
-    # `volume.gradient_component`); per block T[bl] (64,) its piece of (S B)^T g (float64),
+    # (n_slots,) complete (products in their precision, a product and a difference possibly fused
+    # into one rounding, sums in float64; `volume.gradient_component` is the NumPy reference);
+    # per block T[bl] (64,) its piece of (S B)^T g (float64),
     # sums[0, bl] = x0a . g (when x0a is not empty) and sums[1, bl] = sum |s g|.
     n_blocks = T.shape[0]
     bs = g.shape[0] // n_blocks

@@ -272,3 +272,79 @@ def test_what_is_made_on_first_use_is_made_from_the_positions_as_bound(kernels):
     weights[:] = 1.0
     np.testing.assert_array_equal(out.wuv, ref.wuv)
     np.testing.assert_array_equal(out.ww, ref.ww)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("islands", [False, True])
+def test_the_three_axis_pass_equals_three_single_axis_passes(kernels, dtype, islands):
+    # The joint steps over islands linearise every axis at the same coordinates and take the
+    # three gradients from one pass over the faces: each must be what the single-axis pass gives
+    # (the gradient, (S B)^T g per volume row, x0_a . g and sum |s g|).
+    b, P = _problem(dtype, islands=islands)
+    D = P - b.lattice.rest_points
+    one, three = kernels.CompiledSteps(b), kernels.CompiledSteps(b)
+    rows, k = (b.slot_island, b.n_islands) if islands else (None, 1)
+    fused = three.axis_gradients(D)
+    one.refresh((0, 1, 2), D)
+    assert np.array_equal(one.X, three.X)
+    for a in range(3):
+        ref, got = one.axis_gradient(a, D), fused[a]
+        scale = np.abs(ref.g).max()
+        assert np.abs(got.g - ref.g).max() <= 1e-6 * scale
+        assert np.allclose(three.transpose(got, rows, k), one.transpose(ref, rows, k), rtol=0,
+                           atol=1e-6 * np.abs(one.transpose(ref, rows, k)).max())
+        for name in ("x0_dot", "flux"):
+            want, have = getattr(one, name)(a, ref, rows, k) if name == "x0_dot" else one.flux(ref, rows, k), \
+                getattr(three, name)(a, got, rows, k) if name == "x0_dot" else three.flux(got, rows, k)
+            assert np.allclose(have, want, rtol=1e-6, atol=0)
+
+
+def test_the_least_norm_step_equals_lapacks(kernels):
+    # The joint steps' least-norm move, from a compiled QR and a k x k LAPACK solve, against
+    # LAPACK's own least squares on the whole k x n matrix: full rank, nearly parallel rows (small
+    # bodies sharing cells), exactly repeated rows (cut by rcond), and more rows than unknowns
+    # (left to LAPACK: min_norm says None).
+    rng = np.random.default_rng(11)
+    cases = [rng.standard_normal((k, n)) for k, n in ((1, 7), (6, 6), (40, 300))]
+    near = rng.standard_normal((5, 60))
+    near[3] = near[2] + 1e-8 * rng.standard_normal(60)
+    twin = near.copy()
+    twin[4] = twin[1]
+    for i, A in enumerate(cases + [near, twin]):
+        r = rng.standard_normal(len(A))
+        for rcond in (1e-10, 1e-5):
+            ref = np.linalg.lstsq(A, r, rcond=rcond)[0]
+            got = kernels.min_norm(A, r, rcond)
+            if i < len(cases):      # well conditioned: the same numbers
+                assert np.abs(got - ref).max() <= 1e-9 * max(1.0, np.abs(ref).max())
+            # Any conditioning: as close to the rows' targets (to the rounding of A u) and no
+            # longer than LAPACK's.
+            rounding = 1e-14 * np.linalg.norm(A) * np.linalg.norm(ref)
+            assert np.linalg.norm(A @ got - r) <= 1.01 * np.linalg.norm(A @ ref - r) + rounding + 1e-12
+            assert np.linalg.norm(got) <= (1 + 1e-6) * np.linalg.norm(ref) + 1e-12
+    assert kernels.min_norm(rng.standard_normal((8, 5)), np.ones(8), 1e-10) is None
+
+
+def _cpu_while_asleep(seconds=0.1):
+    """Milliseconds of this process's CPU time spent while its main thread sleeps."""
+    import time
+    c0 = time.process_time()
+    time.sleep(seconds)
+    return (time.process_time() - c0) * 1e3
+
+
+def test_a_solve_leaves_no_blas_threads_spinning(kernels):
+    # OpenBLAS runs a k x n least-squares problem on its worker threads, which then spin for about
+    # a tenth of a second: in Blender they would take the cores from the next frame and from
+    # Blender's own evaluation (docs/performance.md, "Keep BLAS out of the frame"). A solve
+    # with islands and pins (the joint steps) must leave the process idle once it returns:
+    # measured as CPU time, not wall time, so a busy machine can only hide a spin, never fake one.
+    verts, tris = _small_bodies()
+    lat = vp.Lattice((6, 6, 6), "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    P = lat.rest_points * [1.0, 1.0, 0.5]
+    b = vp.bind(lat, verts, tris, dtype=np.float32)
+    _cpu_while_asleep(0.5)      # what earlier tests left spinning dies down
+    for pins in ((), [(0, verts[0] * [1, 1, 0.5]), (700, verts[700] * [1, 1, 0.5])]):
+        sol = b.solve(P, axes="XYZ", islands=True, pins=pins)
+        assert not sol.warnings, sol.warnings
+        assert _cpu_while_asleep() < 20.0

@@ -180,6 +180,23 @@ def _smoke_solve(kernels, dtype):
                 and np.isclose(sums[0, 0], x0[0].astype(float) @ ref, rtol=0, atol=tol)
                 and np.isclose(sums[1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
             raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
+    g, T, sums = np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))
+    kernels["gradient_transpose3"](X, start, pairs, params, coef, x0, g, T, sums, 0, 1)
+    for a in range(3):
+        ref = gradient_component(X[(a + 1) % 3][tris_t], X[(a + 2) % 3][tris_t], tris_t, 4)
+        alpha = np.zeros((1, 64))
+        kernels["reduce_blocks"](T[a], cell, np.zeros(1, np.int64), shape, alpha)
+        if not (np.allclose(g[a], ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
+                and np.isclose(sums[a, 0, 0], x0[a].astype(float) @ ref, rtol=0, atol=tol)
+                and np.isclose(sums[a, 1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
+            raise RuntimeError("the compiled three-axis gradient pass differs from NumPy's sums")
+    A = np.vstack([np.cos(np.arange(12.0)), np.sin(np.arange(12.0)), np.arange(12.0) % 5]).reshape(3, 12)
+    M, tau, u = A.copy(), np.empty(3), np.zeros(12)
+    kernels["householder"](M, tau)
+    u[:3] = np.linalg.solve(np.tril(M[:, :3]), np.ones(3))
+    kernels["apply_q"](M, tau, u)
+    if not np.allclose(u, np.linalg.lstsq(A, np.ones(3), rcond=None)[0], rtol=0, atol=1e-12):
+        raise RuntimeError("the compiled QR's least-norm step differs from LAPACK's")
     out = np.empty((4, 3))
     kernels["to_verts"](X, slot, np.zeros((1, 3)), np.zeros(4, np.int64), out, 0, 4)
     if not np.array_equal(out, X.T.astype(float)):
@@ -254,6 +271,23 @@ class CompiledSteps(Steps):
         a1, a2 = (axis + 1) % 3, (axis + 2) % 3
         self.refresh((a1, a2), D)
         return self._pass(self.X[a1], self.X[a2], self.x0[axis])
+
+    def axis_gradients(self, D):
+        """The three axis gradients at the same coordinates, from one pass over the faces
+        (`solve_kernels.gradient_transpose3`): (g_x, g_y, g_z) as `axis_gradient` gives them."""
+        b, K = self.b, self.K
+        self.refresh((0, 1, 2), D)
+        start, inc = incidence(b)
+        n_slots = b.x0.shape[1]
+        g, T, sums = np.empty((3, n_slots)), np.empty((3, self.n_blocks, 64)), np.empty((3, 2, self.n_blocks))
+        self._blocks(lambda b0, b1: K["gradient_transpose3"](self.X, start, inc, self.params, self.coef,
+                                                             self.x0, g, T, sums, b0, b1))
+        out = []
+        for a in range(3):
+            one = _Gradient.__new__(_Gradient)
+            one.g, one.T, one.sums = g[a], T[a], sums[a]
+            out.append(one)
+        return tuple(out)
 
     def direction_gradient(self, p, q, D):
         self.refresh((0, 1, 2), D)
@@ -360,6 +394,30 @@ def bind_kernels(lattice):
                                   for n, kind in zip(lattice.shape, lattice.interpolation)):
         return None
     return kernels
+
+
+def min_norm(A, r, rcond):
+    """u (n,) of least norm with A u = r for A (k, n), r (k,), least squares where the rows cannot
+    all be met, singular values under rcond times the largest cut (as `numpy.linalg.lstsq`); or
+    None where the kernels are not loaded or k > n. A is reduced to k x k by a Householder QR of
+    A^T in a compiled kernel (A = R^T Q^T, u = Q y with R^T y = r), which keeps the singular values
+    of A (no Gram matrix), and only the small k x k problem goes to LAPACK: OpenBLAS runs LAPACK's
+    k x n factorisation on its worker threads, which then spin for about a tenth of a second and
+    take the cores from the solve's own threads (and from Blender's). docs/performance.md,
+    "Keep BLAS out of the frame"."""
+    K = _state["kernels"]
+    k, n = A.shape
+    if K is None or k > n or k == 0:
+        return None
+    M = np.array(A, dtype=np.float64, order="C")
+    tau = np.empty(k)
+    K["householder"](M, tau)
+    RT = np.tril(M[:, :k])
+    y = np.linalg.lstsq(RT, np.asarray(r, np.float64), rcond=rcond)[0]
+    u = np.zeros(n)
+    u[:k] = y
+    K["apply_q"](M, tau, u)
+    return u
 
 
 def default_steps(binding):

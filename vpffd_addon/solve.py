@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import tolerances as tol
-from .compiled import default_steps
+from .compiled import default_steps, min_norm
 from .steps import CAPABILITIES
 from .volume import face_volumes
 
@@ -136,6 +136,7 @@ class _State:
         self.mirrored = False                        # whether some target's sign was turned
         self.moves = 0                               # how often the control points moved
         self._last_gradient = None                   # ((direction, moves), gradient(e))
+        self._fused = {}                             # {(direction, moves): gradient(e)} (`gradients`)
         f32 = self.k.float32
         self.degenerate = tol.DEGENERATE_REL_F32 if f32 else tol.DEGENERATE_REL_F64
         self.met_rel = tol.MET_REL_F32 if f32 else tol.MET_REL_F64
@@ -154,6 +155,7 @@ class _State:
         self.k = to64()
         self.degenerate, self.met_rel = tol.DEGENERATE_REL_F64, 0.1 * tol.MET_REL_F32
         self._last_gradient = None
+        self._fused = {}
         return True
 
     @property
@@ -169,9 +171,29 @@ class _State:
         key = (tuple(np.asarray(e, np.float64).tolist()), self.moves)
         if self._last_gradient is not None and self._last_gradient[0] == key:
             return self._last_gradient[1]
-        result = self._gradient(e)
+        result = self._fused.get(key) if self._fused else None
+        if result is None:
+            result = self._gradient(e)
         self._last_gradient = (key, result)
         return result
+
+    def gradients(self, dirs):
+        """Ready the gradients along every one of `dirs` at the current control points: where
+        they are the three axes and the steps offer `axis_gradients`, from one pass over the
+        faces (the joint steps linearise every direction at the same coordinates)."""
+        fused = getattr(self.k, "axis_gradients", None)
+        axes = [_frame(e)[0] for e in dirs]
+        if fused is None or sorted(a for a in axes if a is not None) != [0, 1, 2] or len(axes) != 3:
+            return
+        if self._fused and next(iter(self._fused))[1] == self.moves:
+            return
+        self._fused = {}
+        for a, g in enumerate(fused(self.D)):
+            e = np.eye(3)[a]
+            self._fused[(tuple(e.tolist()), self.moves)] = (a, g, self.k.x0_dot(a, g, *self._rows))
+        for e, a in zip(dirs, axes):   # the directions as given (-X measures as +X)
+            self._fused[(tuple(np.asarray(e, np.float64).tolist()), self.moves)] = \
+                self._fused[(tuple(np.eye(3)[a].tolist()), self.moves)]
 
     def _gradient(self, e):
         axis, p, q = _frame(e)
@@ -283,6 +305,7 @@ class _State:
         when there is nothing to do (no usable row, or an absurd step, which is refused)."""
         b = self.b
         blocks, grads = [], []
+        self.gradients(dirs)
         for e in dirs:
             axis, g, base = self.gradient(e)
             e = np.eye(3)[axis] if axis is not None else e
@@ -333,7 +356,10 @@ def _min_norm_step(C, r, mobility=None):
     if not (np.isfinite(C).all() and np.isfinite(r).all()):
         raise ValueError(_OVERFLOW)   # (LAPACK may never return on NaN input)
     w = None if mobility is None else np.sqrt(mobility)
-    u = np.linalg.lstsq(C if w is None else C * w, r, rcond=tol.JACOBIAN_RCOND)[0]
+    CW = C if w is None else C * w
+    u = min_norm(CW, r, tol.JACOBIAN_RCOND)
+    if u is None:
+        u = np.linalg.lstsq(CW, r, rcond=tol.JACOBIAN_RCOND)[0]
     return u if w is None else w * u
 
 
@@ -410,6 +436,7 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
             st.step(e, m - d, preserve_volume)
         plain = st.plain            # what the first step measured before moving anything
     elif jointly:
+        st.gradients(dirs)
         st.start(dirs[0])
         plain = st.plain
     else:
@@ -431,6 +458,7 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
             if not st.joint(dirs, preserve_volume):
                 break
             e = dirs[0]
+            st.gradients(dirs)      # the next step's, measured with
             st.volumes = st.measure(e, *st.gradient(e), None)
             done = (not preserve_volume or st.volume_met().all()) and st.pins_met()
             if jointly:
@@ -439,6 +467,7 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
                 # iteration finished, in float64 where the steps offer it.
                 worst = float(np.max(np.abs(st.volumes - st.targets) / st.vol_scale))
                 if (done or worst > 0.5 * miss) and st.in_float64():
+                    st.gradients(dirs)
                     st.volumes = st.measure(e, *st.gradient(e), None)
                     done = st.volume_met().all() and st.pins_met()
                 miss = worst

@@ -205,6 +205,68 @@ def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b
         block_transpose(gs, bs, wu, wv, ww, h, T[bl])
 
 
+def gradient_transpose3(X, inc_start, inc, params, c, x0, g, T, sums, b0, b1):
+    # `gradient_transpose` for the three axes at once, from one gathering of the faces around each
+    # slot (the gradient along axis a is component a of the sum of the faces' cross products):
+    # for the joint steps, which linearise every axis at the same coordinates X (3, n_slots).
+    # g (3, n_slots), T (3, n_blocks, 64), sums (3, 2, n_blocks); x0 (3, n_slots) always given.
+    n_blocks = T.shape[1]
+    bs = g.shape[1] // n_blocks
+    dt = params.dtype
+    wu = np.empty((4, bs), dt)
+    wv = np.empty((4, bs), dt)
+    ww = np.empty((4, bs), dt)
+    gs = np.empty((3, bs))
+    h = np.empty(bs)
+    x = X[0]
+    y = X[1]
+    z = X[2]
+    for bl in range(b0, b1):
+        base = bl * bs
+        sx0 = 0.0
+        sx1 = 0.0
+        sx2 = 0.0
+        sf0 = 0.0
+        sf1 = 0.0
+        sf2 = 0.0
+        for s in range(bs):
+            v = base + s
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            for e in range(inc_start[v], inc_start[v + 1]):
+                m = inc[2 * e]
+                n = inc[2 * e + 1]
+                a0 += y[m] * z[n] - z[m] * y[n]
+                a1 += z[m] * x[n] - x[m] * z[n]
+                a2 += x[m] * y[n] - y[m] * x[n]
+            g0 = a0 * (1.0 / 6.0)
+            g1 = a1 * (1.0 / 6.0)
+            g2 = a2 * (1.0 / 6.0)
+            g[0, v] = g0
+            g[1, v] = g1
+            g[2, v] = g2
+            gs[0, s] = g0
+            gs[1, s] = g1
+            gs[2, s] = g2
+            sx0 += x0[0, v] * g0
+            sx1 += x0[1, v] * g1
+            sx2 += x0[2, v] * g2
+            si = params[3, v]
+            sf0 += abs(si * g0)
+            sf1 += abs(si * g1)
+            sf2 += abs(si * g2)
+        sums[0, 0, bl] = sx0
+        sums[1, 0, bl] = sx1
+        sums[2, 0, bl] = sx2
+        sums[0, 1, bl] = sf0
+        sums[1, 1, bl] = sf1
+        sums[2, 1, bl] = sf2
+        block_weights(params, base, bs, c, wu, wv, ww)
+        for a in range(3):
+            block_transpose(gs[a], bs, wu, wv, ww, h, T[a, bl])
+
+
 def reduce_blocks(T, block_cell, block_row, shape, alpha):
     # alpha[row] += every block's piece at its control points, in block order.
     idx = np.empty(64, np.int64)
@@ -214,6 +276,51 @@ def reduce_blocks(T, block_cell, block_row, shape, alpha):
         row = block_row[bl]
         for q in range(64):
             alpha[row, idx[q]] += T[bl, q]
+
+
+def householder(M, tau):
+    # The QR factorisation A = Q R of A = M^T (n, k), n >= k, by Householder reflections, in place
+    # on M (k, n) (row j of M is column j of A, so every loop runs along a row): R^T is then the
+    # lower triangle of M[:, :k] and row j right of column j holds reflection j's vector (its
+    # first entry 1 implied), tau (k,) their factors. (The joint steps' rows, reduced to k x k
+    # without LAPACK: see `compiled.min_norm`.)
+    k, n = M.shape
+    for j in range(k):
+        s = 0.0
+        for i in range(j, n):
+            s += M[j, i] * M[j, i]
+        alpha = M[j, j]
+        norm = np.sqrt(s)
+        if norm == 0.0:
+            tau[j] = 0.0
+            continue
+        beta = -norm if alpha >= 0.0 else norm
+        v0 = alpha - beta
+        for i in range(j + 1, n):
+            M[j, i] /= v0
+        tau[j] = (beta - alpha) / beta
+        M[j, j] = beta
+        for c in range(j + 1, k):
+            d = M[c, j]
+            for i in range(j + 1, n):
+                d += M[j, i] * M[c, i]
+            d *= tau[j]
+            M[c, j] -= d
+            for i in range(j + 1, n):
+                M[c, i] -= d * M[j, i]
+
+
+def apply_q(M, tau, x):
+    # x (n,) <- Q x with the reflections `householder` left in M, tau (applied last to first).
+    k, n = M.shape
+    for j in range(k - 1, -1, -1):
+        d = x[j]
+        for i in range(j + 1, n):
+            d += M[j, i] * x[i]
+        d *= tau[j]
+        x[j] -= d
+        for i in range(j + 1, n):
+            x[i] -= d * M[j, i]
 
 
 def vertex_incidence(tris_t, start, pairs):
@@ -264,7 +371,8 @@ def to_verts(X, slot, origin, vertex_row, out, v0, v1):
 
 
 _HELPERS = ("weights", "block_weights", "same_cell", "taps", "block_transpose")
-_KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "reduce_blocks": "njit",
+_KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
+            "reduce_blocks": "njit", "householder": "njit_sums", "apply_q": "njit_sums",
             "vertex_incidence": "njit", "slot_incidence_start": "njit", "slot_incidence_fill": "njit",
             "to_verts": "njit"}
 #: The plain functions, as written (`define` rebinds the helpers' names to compiled ones).

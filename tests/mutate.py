@@ -57,8 +57,8 @@ MUTATIONS = {
         ["tests/test_core_compiled.py"], {}),
     "islands-float32": (
         "vpffd_addon/solve.py",
-        "if (done or worst > 0.5 * miss) and st.in_float64():",
-        "if (done or worst > 0.5 * miss) and False:",
+        "        st.in_float64()\n",
+        "        pass\n",
         ["tests/test_core_compiled.py"], {}),
     "target-bind-from-result": (
         "operators/engine.py",

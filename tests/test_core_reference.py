@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import vpffd_addon as vp
+from vpffd_addon import tolerances as tol
 
 from . import _meshes as M
 
@@ -325,12 +326,34 @@ def test_pins_with_mobility_match_kkt(seed):
     _compare(b, sol, lat, verts, tris, SB, P, E, scale, mobility=mob, pins=pins)
 
 
+def _svd_min_norm(C, r, rcond):
+    """t of least norm minimising |C t - r|, singular values of C under rcond times the largest
+    dropped (written out: an SVD)."""
+    U, S, Vt = np.linalg.svd(C, full_matrices=False)
+    keep = S > rcond * S.max()
+    return Vt[keep].T @ ((U[:, keep].T @ r) / S[keep])
+
+
+def _kkt_min_norm(C, r):
+    """t (n,) of least norm with C t = r, from the KKT system [[2I, C^T], [C, 0]] [t; lam] = [0; r]."""
+    q, n = C.shape
+    K = np.zeros((n + q, n + q))
+    K[:n, :n] = 2.0 * np.eye(n)
+    K[:n, n:] = C.T
+    K[n:, :n] = C
+    return np.linalg.solve(K, np.concatenate([np.zeros(n), r]))[:n]
+
+
 def gauss_newton_solve(lat, verts, tris, SB, P, scale, labels, pins=(), met=1e-9, iterations=10):
-    """Per-island volumes (and pins) over all three axes at once, written densely: Gauss-Newton
-    from the plain deformation, each step the minimum-norm move of every control-point
-    coordinate that meets the linearised island volumes and the pins (the KKT system
-    [[2I, C^T], [C, 0]] [t; lam] = [0; r]), until every island is within `met` of its target
-    and every pin within `met` of the lattice size."""
+    """Per-island volumes (and pins) over all three axes at once, written densely. Without pins
+    the first move is the sweep: the minimum-norm move t of every control-point coordinate that
+    meets the linearised island volumes (all axes at the plain deformation), applied an axis at a
+    time, each axis after the first re-solved at the coordinates the earlier ones left (the
+    minimum-norm change of its planned move that gives what the plan asked of it, singular values
+    under `SWEEP_RCOND` of the largest left out; the last axis: all that remains). Then Gauss-Newton, each step the minimum-norm move that meets the
+    linearised island volumes and the pins (the KKT system [[2I, C^T], [C, 0]] [t; lam] = [0; r]),
+    until every island is within `met` of its target and every pin within `met` of the lattice
+    size."""
     c = lat.centre
     P = np.array(P, float)
     N = len(P)
@@ -338,6 +361,23 @@ def gauss_newton_solve(lat, verts, tris, SB, P, scale, labels, pins=(), met=1e-9
     face_lab = labels[tris[:, 0]]
     rest = np.array([M.face_volume(verts, tris[face_lab == j], origin=c) for j in range(k)])
     targets = scale * rest
+
+    def volumes_and_rows(axes):
+        X = verts + SB @ (P - lat.rest_points)
+        now = np.array([M.face_volume(X, tris[face_lab == j], origin=c) for j in range(k)])
+        rows = np.array([[SB.T @ M.volume_gradient(X, tris[face_lab == j], origin=c)[:, a] for j in range(k)]
+                         for a in axes])                                    # (axes, k, N)
+        return now, rows
+    if not pins:
+        now, plan = volumes_and_rows(range(3))
+        t = _kkt_min_norm(np.concatenate(plan, axis=1), targets - now).reshape(3, N)
+        for a in range(3):
+            u = t[a]
+            if a:
+                now, (alpha,) = volumes_and_rows([a])
+                want = targets - now if a == 2 else plan[a] @ u
+                u = u + _svd_min_norm(alpha, want - alpha @ u, tol.SWEEP_RCOND)
+            P[:, a] += u
     for _ in range(iterations):
         X = verts + SB @ (P - lat.rest_points)
         now = np.array([M.face_volume(X, tris[face_lab == j], origin=c) for j in range(k)])

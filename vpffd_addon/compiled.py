@@ -233,8 +233,12 @@ class CompiledSteps(Steps):
         self.float32 = dtype == np.float32
         if dtype == b.dtype:
             self.params, self.x0 = b.params, b.x0
-        else:   # the binding's values, computed with in another precision (`in_float64`)
-            self.params, self.x0 = b.params.astype(dtype), b.x0.astype(dtype)
+        else:   # the binding's values, computed with in another precision (`in_float64`),
+            # made once per binding (a lattice animating under a still mesh keeps its binding)
+            got = getattr(b, "_converted", None)
+            if got is None or got[0] != dtype:
+                got = b._converted = (dtype, b.params.astype(dtype), b.x0.astype(dtype))
+            self.params, self.x0 = got[1], got[2]
         self.X = self.x0.copy()
         lat = b.lattice
         self.coef = solve_kernels.constants(lat.interpolation, dtype)

@@ -137,6 +137,7 @@ class _State:
         self.moves = 0                               # how often the control points moved
         self._last_gradient = None                   # ((direction, moves), gradient(e))
         self._fused = {}                             # {(direction, moves): gradient(e)} (`gradients`)
+        self._alpha = None                           # (g, alpha_rows(g)) of the last g asked for
         f32 = self.k.float32
         self.degenerate = tol.DEGENERATE_REL_F32 if f32 else tol.DEGENERATE_REL_F64
         self.met_rel = tol.MET_REL_F32 if f32 else tol.MET_REL_F64
@@ -145,10 +146,13 @@ class _State:
         self.vol_scale = np.maximum(scale, np.abs(b.rest_volume) * 1e-6 + 1e-300)
 
     def in_float64(self):
-        """Go on with float64 steps where the steps offer them (`in_float64`): the joint steps over
-        islands, whose small bodies' volumes float32 coordinates cannot resolve to the tolerance.
-        A volume then counts as met at a tenth of the float32 tolerance (what is left for the
-        rounding of the result to float32). Returns whether it switched."""
+        """Go on with float64 steps where the steps offer them (`in_float64`): the steps over
+        islands, whose small bodies' volumes float32 coordinates cannot resolve to the tolerance
+        (a body 1% of the lattice's size rounds at ~1e-5 of its volume), run in float64 from the
+        start; the compiled passes cost about as much in float64 (they wait on gathers, not on
+        arithmetic: docs/performance.md). A volume then counts as met at a tenth of the float32
+        tolerance (what is left for the rounding of the result to float32). Returns whether it
+        switched."""
         to64 = getattr(self.k, "in_float64", None)
         if to64 is None or not self.k.float32:
             return False
@@ -212,8 +216,17 @@ class _State:
         return np.abs(self.volumes - self.targets) <= self.met_rel * self.vol_scale
 
     def alpha_rows(self, g):
-        """(k, N) volume coefficients (S B)^T g, one row per volume row (island)."""
-        return self.k.transpose(g, *self._rows)
+        """(k, N) volume coefficients (S B)^T g, one row per volume row (island); the last one is
+        kept (a measure and the step after it ask for the same)."""
+        if self._alpha is None or self._alpha[0] is not g:
+            self._alpha = (g, self.k.transpose(g, *self._rows))
+        return self._alpha[1]
+
+    def measured(self, e):
+        """(k,) current volumes, from the gradient along unit direction e (with its coefficients
+        where e is an axis: V = x0_a . g + D_a . alpha)."""
+        axis, g, base = self.gradient(e)
+        return self.measure(e, axis, g, base, None if axis is None else self.alpha_rows(g))
 
     def _note_plain(self, volumes):
         """Keep the plain deformation's volumes. The target is on the volume's magnitude: where
@@ -226,8 +239,7 @@ class _State:
 
     def start(self, e):
         """Measure the plain deformation's volumes (along unit direction e) without a step."""
-        axis, g, base = self.gradient(e)
-        self.volumes = self.measure(e, axis, g, base, None)
+        self.volumes = self.measured(e)
         self._note_plain(self.volumes)
 
     def step(self, e, divisor, preserve_volume):
@@ -298,6 +310,56 @@ class _State:
             self.D += t[:, None] * e
             self.P += t[:, None] * e
 
+    def sweep(self, dirs):
+        """The first correction over islands: one joint linearised step (every direction at the
+        same coordinates, as `joint`), applied one direction at a time. Along one direction the
+        volume is exactly linear, so each direction after the first is re-solved at the
+        coordinates the earlier ones left, for what the joint step planned for it (the last one
+        for all that remains), starting from the planned move: only the change the earlier moves
+        made to the coefficients is solved for. Returns False when there is nothing to do."""
+        b = self.b
+        self.gradients(dirs)
+        N = b.lattice.n_points
+        plan, grads = [], []
+        for e in dirs:
+            axis, g, base = self.gradient(e)
+            e = np.eye(3)[axis] if axis is not None else e
+            grads.append((e, axis))
+            plan.append(self.alpha_rows(g))
+        e0, axis0 = grads[0]
+        axis0_, g0, base0 = self.gradient(dirs[0])
+        self.volumes = self.measure(e0, axis0, g0, base0, plan[0])
+        if self.plain is None:
+            self._note_plain(self.volumes)
+        J = np.concatenate(plan, axis=1)
+        usable = np.linalg.norm(J, axis=1) > 0
+        if not usable.any():
+            return False
+        self.used |= usable
+        r = np.where(usable, self.targets - self.volumes, 0.0)
+        mob = None if self.mob is None else np.tile(self.mob, len(dirs))
+        t = _min_norm_step(J[usable], r[usable], mob)
+        if not np.isfinite(t).all() or np.abs(t).max(initial=0.0) > tol.MAX_STEP_LATTICE * b.lattice.size:
+            return False
+        for d, ((e, axis), alpha_plan) in enumerate(zip(grads, plan)):
+            u = t[d * N:(d + 1) * N]
+            if d:
+                axis_, g, base = self.gradient(dirs[d])
+                alpha = self.alpha_rows(g)
+                before = self.measure(e, axis, g, base, alpha)
+                want = self.targets - before if d == len(dirs) - 1 else alpha_plan @ u
+                miss = np.where(usable, want - alpha @ u, 0.0)
+                du = _min_norm_step(alpha[usable], miss[usable], self.mob, tol.SWEEP_RCOND)
+                if np.isfinite(du).all() and np.abs(du).max(initial=0.0) <= tol.MAX_STEP_LATTICE * b.lattice.size:
+                    u = u + du
+            self.move(e, axis, u)
+            if d == len(dirs) - 1 and axis is not None:
+                self.volumes = before + alpha @ u if d else self.volumes + alpha_plan @ u
+        if axis is None:
+            self.gradients(dirs)
+            self.volumes = self.measured(dirs[0])
+        return True
+
     def joint(self, dirs, preserve_volume):
         """One Gauss-Newton step over all directions at once: the volume rows (one per island)
         linearised along every direction, the pin rows (exact: a pinned point is linear in the
@@ -346,7 +408,7 @@ class _State:
         return bool((np.abs(x_pin - self.pin_targets).max(1) <= self.met_rel * self.b.lattice.size).all())
 
 
-def _min_norm_step(C, r, mobility=None):
+def _min_norm_step(C, r, mobility=None, rcond=tol.JACOBIAN_RCOND):
     """t (n,) with C t = r for C (k, n), r (k,), of least norm in the mobility metric
     (sum t_i^2 / mobility_i; mobility 0 keeps a coordinate fixed); least squares where the rows
     cannot all be met. Solved on C itself (an SVD of C W, W = sqrt(mobility)), not on the Gram
@@ -357,9 +419,9 @@ def _min_norm_step(C, r, mobility=None):
         raise ValueError(_OVERFLOW)   # (LAPACK may never return on NaN input)
     w = None if mobility is None else np.sqrt(mobility)
     CW = C if w is None else C * w
-    u = min_norm(CW, r, tol.JACOBIAN_RCOND)
+    u = min_norm(CW, r, rcond)
     if u is None:
-        u = np.linalg.lstsq(CW, r, rcond=tol.JACOBIAN_RCOND)[0]
+        u = np.linalg.lstsq(CW, r, rcond=rcond)[0]
     return u if w is None else w * u
 
 
@@ -436,8 +498,10 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
             st.step(e, m - d, preserve_volume)
         plain = st.plain            # what the first step measured before moving anything
     elif jointly:
-        st.gradients(dirs)
-        st.start(dirs[0])
+        st.in_float64()
+        if len(pin_slots) or not st.sweep(dirs):
+            st.gradients(dirs)
+            st.start(dirs[0])
         plain = st.plain
     else:
         e = np.eye(3)[0]
@@ -453,24 +517,12 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         # Several volume rows (islands) or pins compete for the same control points along one
         # direction at a time; solved jointly over all directions, and iterated (each volume is
         # cubic in simultaneous moves), they meet wherever the lattice has the freedom.
-        miss = np.inf
         for _ in range(_JOINT_ITERATIONS):
             if not st.joint(dirs, preserve_volume):
                 break
-            e = dirs[0]
             st.gradients(dirs)      # the next step's, measured with
-            st.volumes = st.measure(e, *st.gradient(e), None)
+            st.volumes = st.measured(dirs[0])
             done = (not preserve_volume or st.volume_met().all()) and st.pins_met()
-            if jointly:
-                # Islands: float32 coordinates of a small body round at about 1e-5 of its
-                # volume, so the float32 iteration's end (or its stalling) is checked, and the
-                # iteration finished, in float64 where the steps offer it.
-                worst = float(np.max(np.abs(st.volumes - st.targets) / st.vol_scale))
-                if (done or worst > 0.5 * miss) and st.in_float64():
-                    st.gradients(dirs)
-                    st.volumes = st.measure(e, *st.gradient(e), None)
-                    done = st.volume_met().all() and st.pins_met()
-                miss = worst
             if done:
                 st.unmet_pins.clear()
                 break

@@ -15,6 +15,13 @@ GRAM_RCOND = 1e-12
 #: ~1e-7 of the largest; rows equal to rounding are dropped.
 JACOBIAN_RCOND = 1e-10
 
+#: Relative cut-off for the per-axis re-solves of the islands' first move (`solve._State.sweep`):
+#: they correct what the earlier axes changed, a second-order amount, and the rows of nearby
+#: small bodies along one axis alone are nearly parallel, where that amount would be amplified
+#: into moves of lattice sizes; directions this weak are left to the joint steps, which separate
+#: such bodies over all axes at once.
+SWEEP_RCOND = 1e-4
+
 #: A constraint counts as met when its residual is below this fraction of its scale
 #: (volume rows: the target volume; pin rows: the lattice size).
 MET_REL_F64 = 1e-9

@@ -110,3 +110,14 @@ def test_the_readme_speed_line_has_the_figures_of_the_speed_page():
     n, vpffd, plain, solve = m.groups()
     for figure in (f"{n} vertices", f"{vpffd} ms", f"{plain} ms", f"{solve} ms"):
         assert figure in line, (figure, line)
+
+
+def test_the_readme_gives_the_command_ci_runs():
+    """`.ci/run` runs the README's test command, and the README's set-up is `./dev` itself."""
+    with open(os.path.join(ROOT, ".ci", "run"), encoding="utf-8") as fh:
+        commands = [line.strip() for line in fh if line.strip().startswith("./dev ")]
+    assert commands == ["./dev test -q -p no:cacheprovider"], commands
+    readme = _text(README)
+    development = readme[readme.index("## Development"):]
+    assert f"`{commands[0]}`" in development and "`.ci/run`" in development
+    assert "./dev test " in development and "./dev demo " in development

@@ -11,7 +11,8 @@ solve(axes="XYZ") (median and min over --repeat; max(3, repeat // 2) for sizes >
 process Blender's own Lattice modifier on the same mesh and lattice (``modifier.execution_time``).
 Progress goes to stderr, the JSON report to stdout (and to --out). This is a benchmark, not a test:
 it prints figures and ratios and exits 0 whether or not the targets are met. --update-readme
-rewrites the table between the benchmark markers of README.md from this run's figures.
+rewrites the tables between the benchmark markers of docs/speed.md, and the speed line between
+the speed-line markers of README.md, from this run's figures.
 """
 import argparse
 import datetime
@@ -486,6 +487,12 @@ def environment(use_blender):
 
 README_START = "<!-- benchmark:start (written by ./dev bench --update-readme) -->"
 README_END = "<!-- benchmark:end -->"
+#: The page the tables are written to (README_START ... README_END, and the stack table's markers).
+SPEED_PAGE = os.path.join(_ROOT, "docs", "speed.md")
+#: The front page's one line on speed, between these markers of README.md.
+README = os.path.join(_ROOT, "README.md")
+LINE_START = "<!-- speed-line:start (written by ./dev bench --update-readme) -->"
+LINE_END = "<!-- speed-line:end -->"
 
 
 def markdown(report):
@@ -569,15 +576,51 @@ def markdown(report):
     return "\n".join(lines)
 
 
-def update_readme(report, path=os.path.join(_ROOT, "README.md")):
+def speed_line(report):
+    """The front page's sentence on speed from a report, or None when the report has no figure
+    against Blender: a frame in Blender where it was measured, else the solve alone."""
+    env = report["environment"]
+    head = f"Measured by `./dev bench` on {env['date'][:10]}, {env['cpu_count']} CPU cores, Blender {env['bpy']}: "
+    for r in report["results"]:
+        fs = r.get("extension_frame_set")
+        if fs:
+            return (head + f"a mesh of {r['n_verts']:,} vertices in a 10x10x10 B-spline lattice plays at "
+                    f"{fs['vpffd_frame_set_ms_median']:.1f} ms a frame (`scene.frame_set()`) with VP-FFD correcting "
+                    f"along X, Y and Z ({fs.get('kernels') or 'NumPy'} kernels), against "
+                    f"{fs['plain_frame_set_ms_median']:.1f} ms with Blender's Lattice modifier alone "
+                    f"({fs['frame_set_ratio']:.1f}x); VP-FFD's solve is {fs['vpffd_core_solve_ms_median']:.1f} ms of it.")
+    rows = [r for r in report["results"] if r.get("blender")]
+    if not rows:
+        return None
+    r = rows[-1]
+    f32 = r["dtypes"]["float32"]
+    solve = f32.get("solve_xyz_compiled_ms_median") or f32["solve_xyz_ms_median"]
+    kind = "compiled" if f32.get("solve_xyz_compiled_ms_median") else "NumPy"
+    return (head + f"on a mesh of {r['n_verts']:,} vertices in a 10x10x10 B-spline lattice, VP-FFD's solve "
+            f"along X, Y and Z takes {solve:.1f} ms ({kind} kernels, float32) against "
+            f"{r['blender']['execution_time_ms_median']:.1f} ms for Blender's Lattice modifier.")
+
+
+def _rewrite(path, start, end, block):
+    """Replace the text from marker `start` to marker `end` (both kept) of file `path` by `block`
+    (which begins with `start` and ends with `end`)."""
     with open(path) as fh:
         text = fh.read()
-    start, end = text.find(README_START), text.find(README_END)
-    if start < 0 or end < start:
-        raise SystemExit(f"{path}: benchmark markers not found")
+    a, b = text.find(start), text.find(end)
+    if a < 0 or b < a:
+        raise SystemExit(f"{path}: markers {start} ... {end} not found")
     with open(path, "w") as fh:
-        fh.write(text[:start] + markdown(report) + text[end + len(README_END):])
-    log(f"updated the benchmark table in {path}")
+        fh.write(text[:a] + block + text[b + len(end):])
+
+
+def update_readme(report, path=SPEED_PAGE, readme=README):
+    """Write the report's tables into `path` (docs/speed.md) and its speed line into `readme`."""
+    _rewrite(path, README_START, README_END, markdown(report))
+    log(f"updated the benchmark tables in {path}")
+    line = speed_line(report)
+    if line is not None:
+        _rewrite(readme, LINE_START, LINE_END, f"{LINE_START}\n{line}\n{LINE_END}")
+        log(f"updated the speed line in {readme}")
 
 
 def main(argv=None):
@@ -587,7 +630,8 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=7, help="timed runs per figure (sizes >= 8: max(3, repeat//2))")
     ap.add_argument("--out", help="also write the JSON report to this file")
     ap.add_argument("--no-blender", action="store_true", help="skip Blender's Lattice modifier (no bpy needed)")
-    ap.add_argument("--update-readme", action="store_true", help="rewrite README.md's benchmark table")
+    ap.add_argument("--update-readme", action="store_true",
+                    help="rewrite the tables of docs/speed.md and the speed line of README.md")
     ap.add_argument("--no-gpu", action="store_true", help="skip the GPU (compute shader) path")
     ap.add_argument("--no-cage", action="store_true", help="skip the cages of arbitrary topology")
     ap.add_argument("--no-stack", action="store_true", help="skip the modifier-stack frame_set figures")
@@ -677,8 +721,8 @@ def stack_figures():
     return stack_benchmark.run(_install_extension)
 
 
-def update_stack_readme(stack, path=os.path.join(_ROOT, "README.md")):
-    """Rewrite the modifier-stack table between its markers in README.md."""
+def update_stack_readme(stack, path=SPEED_PAGE):
+    """Rewrite the modifier-stack table between its markers in docs/speed.md."""
     from benchmarks import stack_benchmark
     start, end = "<!-- stack-bench:start -->", "<!-- stack-bench:end -->"
     with open(path) as fh:

@@ -10,7 +10,7 @@ or, on a GPU machine without Blender (any Python with NumPy and moderngl, OpenGL
 
 `--standalone` runs the extension's own kernels and solve driver (operators/gpu_backend.py,
 vpffd_addon/solve.py) through benchmarks/moderngl_gpu.py, which supplies the calls of Blender's
-`gpu` module; `--readme FILE.json` then writes such a run's figures into the README.
+`gpu` module; `--readme FILE.json` then writes such a run's figures into docs/speed.md.
 
 Icospheres of subdivision 7 and 8 (163,842 / 655,362 vertices, radius 0.45) in a 10x10x10 B-spline
 lattice spanning [-0.5, 0.5]^3, deformed as in benchmarks/benchmark.py. The GPU backend is
@@ -151,7 +151,8 @@ README_END = "<!-- gpu-hardware:end -->"
 
 
 def readme_block(report):
-    """The README's hardware table (markdown between its markers) from a --standalone run's JSON."""
+    """The hardware table of docs/speed.md (markdown between its markers) from a --standalone
+    run's JSON."""
     lines = [README_START, "<!-- written by: python3 benchmarks/gpu_benchmark.py --readme FILE.json -->", "",
              f"Measured {report['date']} by `benchmarks/gpu_benchmark.py --standalone` on {report['renderer']} "
              f"({report.get('gl_version', '')}), {report['cpus']} CPU cores, Python {report['python']}, "
@@ -174,16 +175,19 @@ def readme_block(report):
     return "\n".join(lines)
 
 
-def write_readme(path):
+SPEED_PAGE = os.path.join(_ROOT, "docs", "speed.md")     # the page the hardware table is on
+
+
+def write_readme(path, readme=SPEED_PAGE):
+    """Write the hardware table of the --standalone run `path` (JSON) into `readme`'s markers."""
     with open(path) as fh:
         report = json.load(fh)
-    readme = os.path.join(_ROOT, "README.md")
     with open(readme) as fh:
         text = fh.read()
     a, b = text.index(README_START), text.index(README_END) + len(README_END)
     with open(readme, "w") as fh:
         fh.write(text[:a] + readme_block(report) + text[b:])
-    log(f"README: hardware GPU table from {path}")
+    log(f"{readme}: hardware GPU table from {path}")
     return 0
 
 
@@ -196,7 +200,7 @@ def main(argv=None):
     ap.add_argument("--standalone", action="store_true",
                     help="no Blender: Blender's gpu calls through moderngl (benchmarks/moderngl_gpu.py)")
     ap.add_argument("--readme", metavar="FILE.json",
-                    help="write a --standalone run's figures into the README and exit")
+                    help="write a --standalone run's figures into docs/speed.md and exit")
     args = ap.parse_args(argv)
     if args.readme:
         return write_readme(args.readme)

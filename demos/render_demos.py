@@ -28,8 +28,9 @@ Lattice modifier's volume is lowest). Exits with status 1 when a VP-FFD object's
 its rest volume by more than 1e-5 (relative) on any frame.
 
 Options: ``--out DIR``, ``--demos ball,cube,tube,arm``, ``--resolution WxH`` (default 480x270),
-``--frame-step N`` (every N-th frame and the last only: a quick look), ``--update-readme`` (copies a contact sheet, a GIF and the plot of each demo to ``docs/`` and
-rewrites the README block between ``<!-- demos:start -->`` and ``<!-- demos:end -->``).
+``--frame-step N`` (every N-th frame and the last only: a quick look), ``--update-readme`` (copies a contact sheet, a GIF and the plot of each demo to ``docs/``,
+the pictures the README and docs/demos.md show, and rewrites the block of docs/demos.md between
+``<!-- demos:start -->`` and ``<!-- demos:end -->``).
 """
 import argparse
 import contextlib
@@ -57,8 +58,8 @@ SHEET_FRAMES = 12
 SHEET_COLUMNS = 4
 SHEET_TILE_WIDTH = 320
 BACKGROUND = (255, 255, 255)      # behind transparent pixels (the demo scenes have no World)
-README = os.path.join(ROOT, "README.md")
 DOCS = os.path.join(ROOT, "docs")
+PAGE = os.path.join(DOCS, "demos.md")     # the page whose block --update-readme rewrites
 README_START = "<!-- demos:start -->"
 README_END = "<!-- demos:end -->"
 DOCS_MAX_BYTES = 3 * 2 ** 20
@@ -537,7 +538,7 @@ def write_outputs(result, out_dir):
     return paths
 
 
-# ------------------------------------------------------------------------------------ README
+# ------------------------------------------------------------------------------ docs/demos.md
 
 PAPER_NOTE = (
     "The paper's scenes are not ours, so compare the kind of effect, not the digits: its bouncing "
@@ -552,9 +553,11 @@ def _wrap(text, width=100):
     return textwrap.fill(text, width=width, break_long_words=False, break_on_hyphens=False)
 
 
-def readme_block(results, env):
-    """Markdown between the README markers, from this run's results."""
+def readme_block(results, env, pictures="docs"):
+    """Markdown between the markers of docs/demos.md, from this run's results; `pictures`: the
+    folder of the pictures, relative to the page."""
     by = {r.demo.key: r for r in results}
+    pic = lambda name: f"{pictures}/{name}" if pictures not in ("", ".") else name  # noqa: E731
     lines = [README_START,
              "<!-- written by ./dev demo --update-readme; edit demos/render_demos.py instead -->", "",
              _wrap(f"Rendered by `./dev demo` on {env['date']} with Blender {env['blender']} (the `bpy` "
@@ -567,9 +570,9 @@ def readme_block(results, env):
     for key in ("ball", "cube", "tube", "arm"):
         r = by[key]
         lines += [f"### {r.demo.title}", "", _wrap(r.demo.description.format(n_verts=r.n_verts)), "",
-                  f"![{r.demo.title}: contact sheet](docs/{key}_contact_sheet.jpg)", "",
-                  f"![{r.demo.title}: animation](docs/{key}.gif) "
-                  f"![{r.demo.title}: volume over time](docs/{key}_volume.png)", ""]
+                  f"![{r.demo.title}: contact sheet]({pic(key + '_contact_sheet.jpg')})", "",
+                  f"![{r.demo.title}: animation]({pic(key + '.gif')}) "
+                  f"![{r.demo.title}: volume over time]({pic(key + '_volume.png')})", ""]
 
     ball, cube = by["ball"], by["cube"]
 
@@ -600,8 +603,9 @@ def readme_block(results, env):
     return "\n".join(lines)
 
 
-def update_readme(results, env, out_dirs, readme=README, docs=DOCS):
-    """Copy small images to `docs` and rewrite the block between the README markers."""
+def update_readme(results, env, out_dirs, readme=PAGE, docs=DOCS):
+    """Copy small images to `docs` and rewrite the block between the markers of the page `readme`
+    (docs/demos.md), its pictures linked relative to the page."""
     from PIL import Image
     with open(readme) as fh:
         text = fh.read()
@@ -623,10 +627,11 @@ def update_readme(results, env, out_dirs, readme=README, docs=DOCS):
         written += [sheet_path, gif_path, plot_path]
     total = sum(os.path.getsize(p) for p in written)
     if total > DOCS_MAX_BYTES:
-        raise SystemExit(f"the README images come to {total} bytes, over {DOCS_MAX_BYTES}: "
+        raise SystemExit(f"the demo pictures come to {total} bytes, over {DOCS_MAX_BYTES}: "
                          "make them smaller (GIF_WIDTH, the contact sheet's width)")
     with open(readme, "w") as fh:
-        fh.write(text[:start] + readme_block(results, env) + text[end + len(README_END):])
+        pictures = os.path.relpath(docs, os.path.dirname(os.path.abspath(readme))).replace(os.sep, "/")
+        fh.write(text[:start] + readme_block(results, env, pictures) + text[end + len(README_END):])
     return written, total
 
 
@@ -642,8 +647,9 @@ def parse_args(argv):
     p.add_argument("--frame-step", type=int, default=1, metavar="N",
                    help="render and measure every N-th frame and the last (default every frame)")
     p.add_argument("--update-readme", action="store_true",
-                   help="copy small images to docs/ and rewrite the README's demos block")
-    p.add_argument("--readme", default=README, help=argparse.SUPPRESS)
+                   help="copy small images to docs/ (the README's and docs/demos.md's pictures) "
+                        "and rewrite the demos block of docs/demos.md")
+    p.add_argument("--page", default=PAGE, help=argparse.SUPPRESS)
     p.add_argument("--docs", default=DOCS, help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     a.demos = [d.strip() for d in a.demos.split(",") if d.strip()]
@@ -714,7 +720,7 @@ def main(argv=None):
                 "(the camera is set up in operators/demos.py).")
         if args.update_readme:
             if not ok or framing:
-                say("README not updated: " + ("a VP-FFD object's volume check failed" if not ok else
+                say(f"{shown(args.page)} not updated: " + ("a VP-FFD object's volume check failed" if not ok else
                     "the pictures would not show every object (see the warnings above)") + ".")
                 ok = False
             else:
@@ -723,8 +729,8 @@ def main(argv=None):
                            frames=", ".join(f"{len(r.frames)} frames ({r.demo.title.lower()})"
                                             for r in results),
                            seconds=seconds, cpus=os.cpu_count())
-                written, total = update_readme(results, env, out_dirs, args.readme, args.docs)
-                say(f"README updated; {len(written)} images in {shown(args.docs)}/ "
+                written, total = update_readme(results, env, out_dirs, args.page, args.docs)
+                say(f"{shown(args.page)} updated; {len(written)} images in {shown(args.docs)}/ "
                     f"({total / 2 ** 20:.2f} MiB): " + ", ".join(os.path.basename(p) for p in written))
         say(f"Done in {time.perf_counter() - t0:.0f} s; Blender's own messages are in "
             f"{shown(log_path)}.")

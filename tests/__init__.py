@@ -1,1 +1,1 @@
-"""The VP-FFD test suite, by layer (pytest.ini's markers; README, *Test layers*)."""
+"""The VP-FFD test suite, by layer (pytest.ini's markers; docs/development.md, *Test layers*)."""

@@ -48,8 +48,8 @@ FAILED_REBIND = "fuzz_failed_rebind"  # mesh flag: a Bind failed on it while bou
 
 AXES = ["XYZ", "XY", "XZ", "YZ", "X", "Y", "Z", "NONE"]
 INTERP = ["KEY_LINEAR", "KEY_CARDINAL", "KEY_CATMULL_ROM", "KEY_BSPLINE"]
-VOLUME_REL = 1e-5         # the README's bound: reported against independent volume, relative
-TARGET_REL = 1e-5         # the README's bound: reported against target when no warning
+VOLUME_REL = 1e-5         # the documented bound (docs/design.md, Accuracy): against independent volume, relative
+TARGET_REL = 1e-5         # the documented bound: reported against target when no warning
 FLUX_REL = 1e-5           # float32 rounding allowance, relative to sum |face terms|
 
 # Errors an engine reports as "<Type>: message" are exceptions other than ValueError: bugs.

@@ -508,7 +508,7 @@ def test_concentric_shells_each_keep_their_volume():
 def test_many_small_islands_sharing_cells_each_keep_their_volume(shape, dtype):
     """Forty small closed bodies in three tight groups (several per lattice cell), the lattice
     squashed to half its height: every island keeps its volume, measured independently about its
-    own centre (1e-9 in float64, the README's 1e-5 in float32), with no warning and modest moves."""
+    own centre (1e-9 in float64, docs/design.md's 1e-5 in float32), with no warning and modest moves."""
     v, f, island = M.many_small_islands()
     lat = vp.Lattice(shape, "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
     P = lat.rest_points.copy()

@@ -245,17 +245,19 @@ def test_renders_show_the_plain_object_losing_what_vpffd_keeps(ext, demo, tmp_pa
 def test_main_command_writes_every_file_and_the_table(tmp_path):
     """`python -m demos.render_demos` (what `./dev demo` runs), small and every 10th frame (the
     Workbench shadows of the cubes cost ~0.5 s a frame here whatever the size), in a fresh
-    interpreter that builds and installs the extension itself; README and docs/ redirected."""
+    interpreter that builds and installs the extension itself; docs/ and its demos.md redirected."""
     pytest.importorskip("PIL")
     pytest.importorskip("matplotlib")
-    readme = tmp_path / "README.md"
-    shutil.copyfile(os.path.join(rd.ROOT, "README.md"), readme)
     out, docs = tmp_path / "out", tmp_path / "docs"
+    docs.mkdir()
+    page = docs / "demos.md"
+    assert rd.PAGE == os.path.join(rd.ROOT, "docs", "demos.md")
+    shutil.copyfile(rd.PAGE, page)
     env = dict(os.environ)
     env.pop(eh.ENV, None)        # the script isolates its own Blender user folder
     proc = subprocess.run(
         [sys.executable, "-m", "demos.render_demos", "--out", str(out), "--resolution", "64x36",
-         "--frame-step", "10", "--update-readme", "--readme", str(readme), "--docs", str(docs)],
+         "--frame-step", "10", "--update-readme", "--page", str(page), "--docs", str(docs)],
         cwd=rd.ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     text = proc.stdout
@@ -275,11 +277,12 @@ def test_main_command_writes_every_file_and_the_table(tmp_path):
         with Image.open(d / f"{demo}.gif") as gif:
             assert gif.n_frames == len(frames) and gif.info.get("loop") == 0
     assert (out / "blender.log").stat().st_size > 0
-    body = readme.read_text()
+    body = page.read_text()
     block = body[body.index(rd.README_START):body.index(rd.README_END)]
+    assert body.startswith("# The demos")                 # the page around the block is kept
     for demo in ("ball", "cube"):
         for name in (f"{demo}_contact_sheet.jpg", f"{demo}.gif", f"{demo}_volume.png"):
-            assert f"docs/{name}" in block
+            assert f"]({name})" in block                  # linked relative to the page, beside it
             assert (docs / name).is_file()
     assert "66% lost" in block and "28%, 51%, 64%" in block
     assert sum(p.stat().st_size for p in docs.iterdir()) < 3 * 2 ** 20

@@ -128,7 +128,7 @@ def test_supports_and_choose():
 
 
 def test_auto_takes_the_gpu_on_a_hardware_renderer_from_50000_vertices(gb, monkeypatch):
-    """The README's claim for Auto's positive branch. Only the cost model's input is faked: the
+    """The documented claim (docs/user-guide.md, Backend) for Auto's positive branch. Only the cost model's input is faked: the
     renderer's name (this machine renders with Mesa's llvmpipe); availability, the kernels and the
     options check are real."""
     monkeypatch.setattr(gb, "renderer", lambda: "NVIDIA H200/PCIe/SSE2")

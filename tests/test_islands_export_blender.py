@@ -152,7 +152,7 @@ def test_alembic_and_usd_export_carry_the_corrected_motion_and_nothing_else(ext,
     if CLEAN_EXPORTS:
         assert len(meshes) == 1, [(o.name, o.type) for o in new]
     else:
-        # Blender 4.2 and 4.3 (README, Limits): the exporters write the tap's point cloud
+        # Blender 4.2 and 4.3 (docs/user-guide.md, Limits): the exporters write the tap's point cloud
         # instance as a second copy of the mesh.
         assert len(meshes) == 2, [(o.name, o.type) for o in new]
     for imported in meshes:

@@ -112,7 +112,7 @@ def _tooltips():
 
 def test_tooltips_are_one_or_two_plain_sentences():
     """A tooltip is read while hovering: at most two sentences and 35 words (the details belong
-    in the README)."""
+    in docs/user-guide.md)."""
     tips = _tooltips()
     assert len(tips) >= 30, "the sources hold tooltips; too few were found"
     long = [f"{where}:{line}: {len(text.split())} words" for where, line, text in tips

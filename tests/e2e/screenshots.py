@@ -1,12 +1,12 @@
 """`./dev screenshots`: run the window session (gui_session.py) and keep its screenshots of the
 real Blender window in docs/ (window_panel.png, window_overlay.png, window_editmode.png,
-window_bake.png, window_fit.png, window_arm.png), for the README. Exits non-zero when a check of the session fails.
+window_bake.png, window_fit.png, window_arm.png), for the README and docs/user-guide.md. Exits non-zero when a check of the session fails.
 
     ./dev screenshots              # the window session, then its screenshots into docs/
     ./dev screenshots --existing   # only save docs/window_*.png again as the session's are saved
 
-The screenshots are saved with an adaptive palette (see `save_for_readme`), so that the README's
-pictures stay small enough to load quickly (tests/test_readme_pictures.py checks their total)."""
+The screenshots are saved with an adaptive palette (see `save_for_readme`), so that the pictures
+stay small enough to load quickly (tests/test_readme_pictures.py checks the README's total)."""
 import glob
 import os
 import sys

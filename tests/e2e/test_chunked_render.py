@@ -370,7 +370,7 @@ def _render_without_extension(work):
 
 @pytest.mark.e2e
 def test_a_worker_without_the_extension_renders_stale_offsets_and_exits_0(renders):
-    """The README's warning about render farms, as it happens: no error, exit status 0, nothing
+    """The warning of docs/render-farms.md, as it happens: no error, exit status 0, nothing
     about VP-FFD in the output, and every frame gets the offsets saved with the file (right on
     the saved frame, wrong on the others)."""
     rc, out, coords = renders["noext"]

@@ -4,7 +4,7 @@ this platform, so nothing is downloaded) that a plain static-file server serves;
 it with `blender --command extension repo-add`, syncs and installs; a newer version is published
 into the same folder, and `list` shows it outdated and `update` installs it, enabled. Every
 command is its own Blender process, sharing one user's preferences, as on a worker. These are the
-commands the README gives studios (test_repository_blender.py takes a file:// URL)."""
+commands the README and docs/render-farms.md give studios (test_repository_blender.py takes a file:// URL)."""
 import functools
 import http.server
 import os

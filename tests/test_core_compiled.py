@@ -181,6 +181,29 @@ def test_the_compiled_bind_layout_keeps_islands_and_big_meshes_bit_for_bit(kerne
         np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_compiled_re_embedding_is_numpys_bit_for_bit(kernels, dtype):
+    # A re-embedding (the faces' topology given, what a mesh moving through the lattice pays on
+    # every frame) checks and measures the positions in one compiled pass and sorts the vertices
+    # by counting: islands of a closed mesh (origins from their own bounds) and of an open one
+    # (the lattice's centre), positions handed as Blender hands them (float32) and as float64.
+    v, f = vp.icosphere(4, 0.5)
+    v2, f2 = vp.icosphere(2, 0.15)
+    closed = (np.vstack([v, v2 + 0.3, v2 - 0.3]), np.vstack([f, f2 + len(v), f2 + len(v) + len(v2)]))
+    opened = (closed[0], closed[1][3:])
+    lat = vp.Lattice((5, 6, 4), ("CATMULL_ROM", "LINEAR", "BSPLINE"))
+    for verts, tris in (closed, opened):
+        topology = vp.Topology(tris, len(verts))
+        moved = (verts * 1.05 + [0.02, -0.01, 0.03]).astype(dtype)
+        ref, out = _bind_both(lat, moved, tris, dtype=np.float32, topology=topology)
+        assert out.n_islands == 3 and out.is_closed == (tris is closed[1])
+        for name, a in _arrays(ref).items():
+            np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
+        moved[7, 1] = np.nan
+        with pytest.raises(ValueError, match=r"rest_verts has non-finite coordinates at 1 vertices \(first: index 7\)"):
+            vp.bind(lat, moved, tris, dtype=np.float32, topology=topology)
+
+
 def test_bezier_and_one_point_axes_bind_with_numpy(kernels):
     assert compiled.bind_kernels(vp.Lattice((4, 4, 4), "BEZIER")) is None
     assert compiled.bind_kernels(vp.Lattice((4, 1, 4))) is None

@@ -260,24 +260,35 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     if depth is not None:
         raise ValueError("depth applies to cages only; a Lattice has no refinement")
     b = Binding()
-    verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype, topology)
-    V = b.n_verts
     kernels = compiled.bind_kernels(lattice) if use_compiled else None
+    verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype, topology, kernels)
+    V = b.n_verts
     taps = _lattice_taps(lattice, verts, kernels)
 
     # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded). The
     # cell is the unclamped one of a local axis (in [-3, n + 2]): vertices outside the lattice
     # whose clamped taps differ do not share a run, so a run's slots share their taps exactly
     # (what the compiled solve needs, `solve_kernels`). A Bernstein or one-point axis has one.
-    cells = [tap[2] + 3 if len(tap) > 2 else np.zeros(V, np.int64) for tap in taps]
     dims = [n + 6 if len(tap) > 2 else 1 for n, tap in zip(lattice.shape, taps)]
-    cell = (cells[2] * dims[1] + cells[1]) * dims[0] + cells[0]
     n_cells = dims[0] * dims[1] * dims[2]
-    key = cell if b.n_islands == 1 else labels * n_cells + cell
-    order = stable_order(key) if int(key.max()) < 2 ** 32 else np.argsort(key, kind="stable")
-    sorted_key = key[order]
-    run_start = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
-    run_len = np.diff(np.r_[run_start, V])
+    n_keys = n_cells * b.n_islands
+    if kernels and n_keys <= max(4 * V, 1 << 16):
+        # A counting sort over the keys (the same order), which also gives the runs.
+        start, order = np.zeros(n_keys + 1, np.int64), np.empty(V, np.int64)
+        islands = np.ascontiguousarray(labels, np.int64) if b.n_islands > 1 else np.zeros(0, np.int64)
+        kernels["counting_order"](taps[0][2], taps[1][2], taps[2][2], islands, np.array(dims, np.int64),
+                                  start, order)
+        run_len = np.diff(start)
+        run_start = start[:-1][run_len > 0]
+        run_len = run_len[run_len > 0]
+    else:
+        cells = [tap[2] + 3 if len(tap) > 2 else np.zeros(V, np.int64) for tap in taps]
+        cell = (cells[2] * dims[1] + cells[1]) * dims[0] + cells[0]
+        key = cell if b.n_islands == 1 else labels * n_cells + cell
+        order = stable_order(key) if int(key.max()) < 2 ** 32 else np.argsort(key, kind="stable")
+        sorted_key = key[order]
+        run_start = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
+        run_len = np.diff(np.r_[run_start, V])
     for bs in _BLOCK_SIZES:
         blocks_per_run = -(-run_len // bs)
         if blocks_per_run.sum() * bs <= _MAX_PADDING * V:
@@ -424,16 +435,19 @@ def stable_order(keys):
     return order
 
 
-def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
+def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None, kernels=None):
     """Validate a bind's inputs and fill the binding's mesh facts; shared by every kind of binding.
     `topology` (a `Topology` of `tris`, or None to make one) carries what does not depend on the
-    positions.
+    positions; `kernels` (`compiled.bind_kernels`) check and measure the positions in one pass
+    where the topology is given (a re-embedding: every frame of a mesh moving through the
+    lattice), with the same results.
     Returns (verts (V, 3), tris (F, 3), influence (V,), island labels (V,), coordinates relative
     to the volume origins (V, 3))."""
     dtype = np.dtype(dtype)
     if dtype not in (np.float32, np.float64):
         raise ValueError(f"dtype must be float32 or float64, got {dtype}")
-    verts = check_verts(rest_verts, "rest_verts")
+    measured = _measured_positions(rest_verts, topology, kernels)
+    verts = measured[0] if measured is not None else check_verts(rest_verts, "rest_verts")
     V = len(verts)
     if topology is None:
         topology = Topology(tris, V)
@@ -457,13 +471,39 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None):
     b.n_islands = topology.n_islands
     # Internal coordinates are relative to a volume origin per island.
     if b.is_closed:
-        lo, hi = topology.island_bounds(verts)
+        lo, hi = topology.island_bounds(verts) if measured is None else measured[1:3]
         b.island_origin = 0.5 * (lo + hi)
     else:
         b.island_origin = lattice.centre[None].copy()
     single = not b.is_closed or b.n_islands == 1
-    rel = verts - (b.island_origin[0] if single else b.island_origin[labels])
+    if measured is None:
+        rel = verts - (b.island_origin[0] if single else b.island_origin[labels])
+    else:
+        rel = np.empty_like(verts)
+        kernels["relative"](verts, b.island_origin, _NO_LABELS if single else measured[3], rel)
     return verts, tris, s, labels, rel
+
+
+_NO_LABELS = np.zeros(0, np.int64)
+
+
+def _measured_positions(rest_verts, topology, kernels):
+    """(verts (V, 3) float64, lo, hi (k, 3) per island, labels) by the compiled `positions` pass
+    when `kernels` are given with a matching `Topology` and the positions are a (V, 3) float32 or
+    float64 array; else None (NumPy checks them). Raises as `check_verts` for non-finite ones."""
+    if kernels is None or not isinstance(topology, Topology):
+        return None
+    v = rest_verts
+    if not (isinstance(v, np.ndarray) and v.dtype in (np.float32, np.float64) and v.ndim == 2
+            and v.shape[1] == 3 and len(v) == topology.n_verts and len(v)):
+        return None
+    v = np.ascontiguousarray(v)
+    k = topology.n_islands
+    labels = np.ascontiguousarray(topology.labels, dtype=np.int64) if k > 1 else _NO_LABELS
+    out, lo, hi = np.empty((len(v), 3)), np.empty((k, 3)), np.empty((k, 3))
+    if kernels["positions"](v, labels, out, lo, hi):
+        check_verts(v, "rest_verts")     # raises, naming the vertices
+    return out, lo, hi, labels
 
 
 def slot_faces(b, rel, n_slots):

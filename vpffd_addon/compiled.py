@@ -128,6 +128,30 @@ def _smoke(kernels):
     if not np.array_equal(vol, face_volumes(coords, tris_t)):
         raise RuntimeError("the faces' volume terms differ from NumPy's")
     n_slots = 8 * len(runs)
+    cu = cell
+    cv, cw = cu[::-1].copy(), np.zeros_like(cu)
+    dims = np.array([11, 11, 4], np.int64)          # (cells of a 5-point axis are in [-3, 7])
+    for labels in (np.zeros(0, np.int64), (np.arange(len(x)) % 3).astype(np.int64)):
+        k = 1 if len(labels) == 0 else 3
+        start, got = np.zeros(k * 484 + 1, np.int64), np.empty(len(x), np.int64)
+        kernels["counting_order"](cu, cv, cw, labels, dims, start, got)
+        key = ((cw + 3) * 11 + cv + 3) * 11 + cu + 3 + (labels * 484 if k > 1 else 0)
+        if not (np.array_equal(got, np.argsort(key, kind="stable")) and start[-1] == len(x)):
+            raise RuntimeError("the counting sort's order differs from NumPy's stable argsort")
+    xyz = np.stack([x, -x, 2 * x], 1)
+    for labels in (np.zeros(0, np.int64), (np.arange(len(x)) % 2).astype(np.int64)):
+        k = 1 if len(labels) == 0 else 2
+        rows = np.zeros(len(x), np.int64) if k == 1 else labels
+        for given in (xyz, xyz.astype(np.float32)):
+            out, lo, hi, rel = np.empty((len(x), 3)), np.empty((k, 3)), np.empty((k, 3)), np.empty((len(x), 3))
+            bad = kernels["positions"](given, labels, out, lo, hi)
+            kernels["relative"](out, 0.5 * (lo + hi), labels, rel)
+            want = given.astype(np.float64)
+            if not (bad == 0 and np.array_equal(out, want)
+                    and np.array_equal(lo, np.array([want[rows == r].min(0) for r in range(k)]))
+                    and np.array_equal(hi, np.array([want[rows == r].max(0) for r in range(k)]))
+                    and np.array_equal(rel, want - (0.5 * (lo + hi))[rows])):
+                raise RuntimeError("the checked positions and their bounds differ from NumPy's")
     for dtype in (np.float32, np.float64):
         params, influence, x0 = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype), np.zeros((3, n_slots), dtype)
         xyz = np.stack([x, x, x], 1)

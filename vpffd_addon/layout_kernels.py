@@ -103,5 +103,72 @@ def define(njit):
             cell[v] = int(fi)
             tt[v] = u - fi
 
-    return {"slots": slots, "sorted_values": sorted_values,
-            "face_volumes": face_volumes, "axis_cells": axis_cells}
+    @njit
+    def counting_order(cu, cv, cw, labels, dims, start, order):
+        # The vertices in stable order of their key (island, cell), as np.argsort(kind="stable")
+        # of `binding.bind_lattice`'s keys, by a counting sort: the key of vertex v is
+        # (labels[v] * n_cells + (cw + 3) * dv + cv + 3) * du + cu + 3 with dims = (du, dv, dw)
+        # (labels empty: one island). start (K + 1,) zeroed, K = n_islands * du * dv * dw, is
+        # left holding where every key's vertices begin in `order` (V,).
+        K = start.shape[0] - 1
+        du, dv = dims[0], dims[1]
+        n_cells = dims[0] * dims[1] * dims[2]
+        one = labels.shape[0] == 0
+        V = cu.shape[0]
+        key = np.empty(V, np.int64)
+        for v in range(V):
+            k = ((cw[v] + 3) * dv + cv[v] + 3) * du + cu[v] + 3
+            if not one:
+                k += labels[v] * n_cells
+            key[v] = k
+            start[k + 1] += 1
+        for k in range(K):
+            start[k + 1] += start[k]
+        pos = start[:K].copy()
+        for v in range(V):
+            k = key[v]
+            order[pos[k]] = v
+            pos[k] += 1
+
+    @njit
+    def positions(verts, labels, out, lo, hi):
+        # out (V, 3) = verts in float64 and, per island (labels (V,), or empty for one), the
+        # bounds lo, hi (k, 3) of its finite coordinates, as `mesh.check_verts` and
+        # `Topology.island_bounds` compute them; one pass instead of five. Returns how many
+        # vertices have a non-finite coordinate (the caller then says which, in NumPy).
+        for r in range(lo.shape[0]):
+            for a in range(3):
+                lo[r, a] = np.inf
+                hi[r, a] = -np.inf
+        bad = 0
+        one = labels.shape[0] == 0
+        for v in range(verts.shape[0]):
+            r = 0 if one else labels[v]
+            finite = True
+            for a in range(3):
+                x = np.float64(verts[v, a])
+                out[v, a] = x
+                if np.isfinite(x):
+                    if x < lo[r, a]:
+                        lo[r, a] = x
+                    if x > hi[r, a]:
+                        hi[r, a] = x
+                else:
+                    finite = False
+            if not finite:
+                bad += 1
+        return bad
+
+    @njit
+    def relative(verts, origin, labels, rel):
+        # rel (V, 3) = verts - the origin of each vertex's island (origin (k, 3); labels empty
+        # when every vertex takes origin[0]).
+        one = labels.shape[0] == 0
+        for v in range(verts.shape[0]):
+            r = 0 if one else labels[v]
+            for a in range(3):
+                rel[v, a] = verts[v, a] - origin[r, a]
+
+    return {"slots": slots, "sorted_values": sorted_values, "face_volumes": face_volumes,
+            "axis_cells": axis_cells, "positions": positions, "relative": relative,
+            "counting_order": counting_order}

@@ -65,6 +65,7 @@ class BindingBase:
         """Bytes held by the arrays of this binding."""
         arrays = [a for a in vars(self).values() if isinstance(a, np.ndarray)] + vars(self).get("corner_parts", [])
         arrays += [a for a in vars(self).get("_incidence", ()) if isinstance(a, np.ndarray)]
+        arrays += list(vars(self).get("_converted", ())[1:])     # float64 copies (islands' steps)
         return int(sum(a.nbytes for a in arrays))
 
     #: What the NumPy products need beyond the compiled ones, made on first use (a binding laid out

@@ -437,11 +437,18 @@ def min_norm(A, r, rcond):
     k, n = A.shape
     if K is None or k > n or k == 0:
         return None
-    M = np.array(A, dtype=np.float64, order="C")
+    # Scaled to a largest entry of 1 (u is unchanged): the reflections' norms would overflow
+    # beyond ~1e154 and vanish below ~1e-162.
+    scale = float(np.abs(A).max())
+    if not (np.isfinite(scale) and scale > 0.0):
+        return None
+    M = np.array(A, dtype=np.float64, order="C") / scale
     tau = np.empty(k)
     K["householder"](M, tau)
+    if not np.isfinite(M).all():
+        return None
     RT = np.tril(M[:, :k])
-    y = np.linalg.lstsq(RT, np.asarray(r, np.float64), rcond=rcond)[0]
+    y = np.linalg.lstsq(RT, np.asarray(r, np.float64) / scale, rcond=rcond)[0]
     u = np.zeros(n)
     u[:k] = y
     K["apply_q"](M, tau, u)

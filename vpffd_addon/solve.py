@@ -240,7 +240,8 @@ class _State:
     def start(self, e):
         """Measure the plain deformation's volumes (along unit direction e) without a step."""
         self.volumes = self.measured(e)
-        self._note_plain(self.volumes)
+        if self.plain is None:      # (a refused sweep noted it, and turned the targets, already)
+            self._note_plain(self.volumes)
 
     def step(self, e, divisor, preserve_volume):
         """One closed-form correction along unit direction e; the volume rows ask for 1/divisor of
@@ -324,15 +325,14 @@ class _State:
         for e in dirs:
             axis, g, base = self.gradient(e)
             e = np.eye(3)[axis] if axis is not None else e
-            grads.append((e, axis))
+            grads.append((e, axis, g, base))
             plan.append(self.alpha_rows(g))
-        e0, axis0 = grads[0]
-        axis0_, g0, base0 = self.gradient(dirs[0])
+        e0, axis0, g0, base0 = grads[0]
         self.volumes = self.measure(e0, axis0, g0, base0, plan[0])
         if self.plain is None:
             self._note_plain(self.volumes)
         J = np.concatenate(plan, axis=1)
-        usable = np.linalg.norm(J, axis=1) > 0
+        usable = np.abs(J).max(axis=1, initial=0.0) > 0
         if not usable.any():
             return False
         self.used |= usable
@@ -341,7 +341,7 @@ class _State:
         t = _min_norm_step(J[usable], r[usable], mob)
         if not np.isfinite(t).all() or np.abs(t).max(initial=0.0) > tol.MAX_STEP_LATTICE * b.lattice.size:
             return False
-        for d, ((e, axis), alpha_plan) in enumerate(zip(grads, plan)):
+        for d, ((e, axis, _, _), alpha_plan) in enumerate(zip(grads, plan)):
             u = t[d * N:(d + 1) * N]
             if d:
                 axis_, g, base = self.gradient(dirs[d])
@@ -380,7 +380,7 @@ class _State:
         if preserve_volume:
             J = np.concatenate(blocks, axis=1)                      # (k, m N)
             r = self.targets - self.volumes
-            usable = np.linalg.norm(J, axis=1) > 0
+            usable = np.abs(J).max(axis=1, initial=0.0) > 0
             self.used |= usable
             rows.extend(J[usable])
             rhs.extend(r[usable])

@@ -17,6 +17,7 @@ import numpy as np
 
 from . import layout_kernels, parallel, solve_kernels
 from .bases import axis_cells
+from .mesh import connected_components, is_closed
 from .steps import CAPABILITIES, NumpySteps, Steps
 from .volume import face_volumes
 
@@ -128,6 +129,20 @@ def _smoke(kernels):
     if not np.array_equal(vol, face_volumes(coords, tris_t)):
         raise RuntimeError("the faces' volume terms differ from NumPy's")
     n_slots = 8 * len(runs)
+    # Closedness and islands: a tetrahedron, a second one beside it and a vertex no face uses;
+    # then with a face turned, a face missing, a face doubled and a degenerate face added.
+    tet = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]], np.int64)
+    two = np.vstack([tet, tet + 4])
+    for tris, n in ((two, 9), (np.vstack([two[:1, ::-1], two[1:]]), 8), (two[1:], 8),
+                    (np.vstack([two, two[:1]]), 8), (np.vstack([two, [[0, 0, 5]]]), 8)):
+        start, pairs = np.zeros(n + 1, np.int64), np.empty(6 * len(tris), np.int32)
+        kernels["vertex_incidence"](np.ascontiguousarray(tris.T), start, pairs)
+        labels = np.empty(n, np.int64)
+        count = kernels["components"](np.ascontiguousarray(tris.T), np.empty(n, np.int64), labels)
+        ref_labels, ref_count = connected_components(tris, n)
+        if bool(kernels["closed"](start, pairs)) != is_closed(tris, n) or count != ref_count \
+                or not np.array_equal(labels, ref_labels):
+            raise RuntimeError("the compiled closedness or islands differ from NumPy's")
     cu = cell
     cv, cw = cu[::-1].copy(), np.zeros_like(cu)
     dims = np.array([11, 11, 4], np.int64)          # (cells of a 5-point axis are in [-3, 7])
@@ -411,6 +426,11 @@ def vertex_rows(binding):
             got = np.ascontiguousarray(binding.island_labels, dtype=np.int64)
         binding._vertex_rows = got
     return got
+
+
+def topology_kernels():
+    """The compiled kernels for a `mesh.Topology` once `load()` succeeded, or None (NumPy)."""
+    return _state["kernels"]
 
 
 def bind_kernels(lattice):

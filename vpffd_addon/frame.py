@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import lattice_eval, parallel
+from . import compiled, lattice_eval, parallel
 from .binder import bind
 from .cage import Cage
 from .falloff import outside_factor
@@ -155,7 +155,7 @@ class Pipeline:
     def _topology(self, tris, n_verts):
         t = self.topology
         if t is None or t.n_verts != n_verts or not t.matches(tris):
-            t = self.topology = Topology(tris, n_verts)
+            t = self.topology = Topology(tris, n_verts, compiled.topology_kernels())
         return t
 
     def _embed(self, inp, verts, influence):

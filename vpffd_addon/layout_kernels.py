@@ -131,6 +131,82 @@ def define(njit):
             pos[k] += 1
 
     @njit
+    def components(tris_t, parent, labels):
+        # `mesh.connected_components` by union-find: every face's edges join their vertices'
+        # sets, the larger root hooked under the smaller, so a root is its component's lowest
+        # vertex; labels (V,) then number the components by that vertex, as NumPy's do.
+        # Returns their count.
+        n = parent.shape[0]
+        for v in range(n):
+            parent[v] = v
+        for f in range(tris_t.shape[1]):
+            for k in range(2):
+                a = tris_t[k, f]
+                while parent[a] != a:           # (path halving)
+                    parent[a] = parent[parent[a]]
+                    a = parent[a]
+                b = tris_t[k + 1, f]
+                while parent[b] != b:
+                    parent[b] = parent[parent[b]]
+                    b = parent[b]
+                if a < b:
+                    parent[b] = a
+                elif b < a:
+                    parent[a] = b
+        count = 0
+        for v in range(n):
+            r = v
+            while parent[r] != r:
+                r = parent[r]
+            if r == v:
+                labels[v] = count
+                count += 1
+            else:
+                labels[v] = labels[r]
+        return count
+
+    @njit
+    def closed(start, pairs):
+        # `mesh.is_closed` from the faces around every vertex (`solve_kernels.vertex_incidence`:
+        # at vertex a, face (a, m, n) gives the edges a -> m and n -> a): closed and consistently
+        # oriented when, at every vertex and leaving degenerate faces out, the vertices its edges
+        # go to are the vertices its edges come from, each once.
+        n_faces = 0
+        most = 0
+        for a in range(start.shape[0] - 1):
+            most = max(most, start[a + 1] - start[a])
+        out = np.empty(most, np.int64)
+        inc = np.empty(most, np.int64)
+        for a in range(start.shape[0] - 1):
+            deg = 0
+            for e in range(start[a], start[a + 1]):
+                m = pairs[2 * e]
+                n = pairs[2 * e + 1]
+                if m == a or n == a or m == n:
+                    continue
+                out[deg] = m
+                inc[deg] = n
+                deg += 1
+            n_faces += deg
+            for k in range(1, deg):             # (insertion sorts: a handful of entries)
+                x = out[k]
+                j = k - 1
+                while j >= 0 and out[j] > x:
+                    out[j + 1] = out[j]
+                    j -= 1
+                out[j + 1] = x
+                x = inc[k]
+                j = k - 1
+                while j >= 0 and inc[j] > x:
+                    inc[j + 1] = inc[j]
+                    j -= 1
+                inc[j + 1] = x
+            for k in range(deg):
+                if out[k] != inc[k] or (k > 0 and out[k] == out[k - 1]):
+                    return False
+        return n_faces > 0
+
+    @njit
     def positions(verts, labels, out, lo, hi):
         # out (V, 3) = verts in float64 and, per island (labels (V,), or empty for one), the
         # bounds lo, hi (k, 3) of its finite coordinates, as `mesh.check_verts` and
@@ -171,4 +247,4 @@ def define(njit):
 
     return {"slots": slots, "sorted_values": sorted_values, "face_volumes": face_volumes,
             "axis_cells": axis_cells, "positions": positions, "relative": relative,
-            "counting_order": counting_order}
+            "counting_order": counting_order, "components": components, "closed": closed}

@@ -98,23 +98,38 @@ class Topology:
     vertices grouped by island, for per-island reductions without scattered writes.
     """
 
-    def __init__(self, tris, n_verts):
+    def __init__(self, tris, n_verts, kernels=None):
         self.n_verts = int(n_verts)
         self.tris = check_tris(tris, self.n_verts)
-        # The two passes are independent and NumPy releases the GIL in their sorts and gathers:
-        # a big mesh runs them side by side on the worker threads.
-        jobs = [lambda: is_closed(self.tris, self.n_verts),
-                lambda: connected_components(self.tris, self.n_verts)]
-        if self.n_verts >= parallel.MIN_VERTS_PER_PART:
-            closed, components = parallel.run(lambda job: job(), jobs)
+        self.tris_t = np.ascontiguousarray(self.tris.T)     # (3, F): corner k of every face
+        if kernels is not None:
+            # The compiled kernels (`compiled.topology_kernels`): the faces around every vertex
+            # (which the compiled solve needs anyway), closedness from them and the islands by
+            # union-find, with NumPy's results.
+            start = np.zeros(self.n_verts + 1, np.int64)
+            pairs = np.empty(6 * len(self.tris), np.int32)
+            kernels["vertex_incidence"](self.tris_t, start, pairs)
+            self._vertex_incidence = (start, pairs)
+            closed = bool(kernels["closed"](start, pairs))
+            labels = np.empty(self.n_verts, np.int64)
+            components = labels, int(kernels["components"](self.tris_t, np.empty(self.n_verts, np.int64), labels))
         else:
-            closed, components = (job() for job in jobs)
+            # The two passes are independent and NumPy releases the GIL in their sorts and
+            # gathers: a big mesh runs them side by side on the worker threads.
+            jobs = [lambda: is_closed(self.tris, self.n_verts),
+                    lambda: connected_components(self.tris, self.n_verts)]
+            if self.n_verts >= parallel.MIN_VERTS_PER_PART:
+                closed, components = parallel.run(lambda job: job(), jobs)
+            else:
+                closed, components = (job() for job in jobs)
         self.is_closed = closed
         self.labels, self.n_islands = components
         self.face_island = self.labels[self.tris[:, 0]]
-        self.tris_t = np.ascontiguousarray(self.tris.T)     # (3, F): corner k of every face
-        self.island_order = np.argsort(self.labels, kind="stable")
-        self.island_start = np.searchsorted(self.labels[self.island_order], np.arange(self.n_islands))
+        if self.n_islands == 1:
+            self.island_order, self.island_start = np.arange(self.n_verts), np.zeros(1, np.int64)
+        else:
+            self.island_order = np.argsort(self.labels, kind="stable")
+            self.island_start = np.searchsorted(self.labels[self.island_order], np.arange(self.n_islands))
 
     def island_bounds(self, verts):
         """(lo, hi), each (n_islands, 3): the bounding box of every island of `verts` (V, 3)."""

@@ -60,6 +60,26 @@ MUTATIONS = {
         "        st.in_float64()\n",
         "        pass\n",
         ["tests/test_core_compiled.py"], {}),
+    "islands-sweep-unsolved": (
+        "vpffd_addon/solve.py",
+        "                    u = u + du\n",
+        "                    u = u + 0.0 * du\n",
+        ["tests/test_core_reference.py", "-k", "islands_match"], {}),
+    "joint-lstsq-threads": (
+        "vpffd_addon/compiled.py",
+        "    if K is None or k > n or k == 0:\n        return None\n    # Scaled",
+        "    if True:\n        return None\n    # Scaled",
+        ["tests/test_core_compiled.py", "-k", "spinning"], {}),
+    "reembed-island-origin": (
+        "vpffd_addon/layout_kernels.py",
+        "                rel[v, a] = verts[v, a] - origin[r, a]",
+        "                rel[v, a] = verts[v, a] - origin[0, a]",
+        ["tests/test_core_compiled.py", "-k", "re_embedding"], {}),
+    "topology-open-as-closed": (
+        "vpffd_addon/layout_kernels.py",
+        "                if out[k] != inc[k] or (k > 0 and out[k] == out[k - 1]):",
+        "                if k > 0 and out[k] == out[k - 1]:",
+        ["tests/test_core_compiled.py", "-k", "topology"], {}),
     "target-bind-from-result": (
         "operators/engine.py",
         "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / ",

@@ -15,7 +15,8 @@ from typing import Optional
 import numpy as np
 
 from .. import vpffd_addon as vp
-from ..vpffd_addon import linalg3
+from ..vpffd_addon import cage_cells, lattice_space, linalg3, wireframe
+from ..vpffd_addon import outside as outside_modes
 from ..vpffd_addon.steps import NumpySteps
 from . import cage, compiled_backend, gpu_backend, meshio, modifier
 from .cache_modifier import find_cache, using_cache
@@ -198,7 +199,7 @@ def _cage_model(state, obj, cage_ob, helper):
     rest = np.array(rest.to_list(), np.float64).reshape(-1, 3)
     key = (hash(flat), rest.tobytes())
     if state.cage_key != key:
-        cells = cage.decode_cells(flat)
+        cells = cage_cells.decode_cells(flat)
         if len(rest) != len(cage_ob.data.vertices):
             raise ValueError(f"cage '{cage_ob.name}' has {len(cage_ob.data.vertices)} points, "
                              f"{len(rest)} when bound: Re-bind")
@@ -288,19 +289,6 @@ class _Bound:
                        f"in {1e3 * gpu:.1f} ms")
 
 
-def _directions(s, lat_matrix):
-    """(axes string, directions (m, 3) or None) in lattice space for the settings `s`."""
-    if s.axes == "NONE":
-        return "", None
-    if s.space == "LATTICE":
-        return s.axes, None
-    # A world displacement e is inv(M3) e in lattice space (not unit length under scale: the
-    # solver normalises; the volume is exact along any direction).
-    inv3 = linalg3.inv3(lat_matrix[:3, :3])
-    world = np.eye(3)[["XYZ".index(c) for c in s.axes]]
-    return "", world @ inv3.T
-
-
 def _pins(s, obj, helper):
     """(k,) indices of the pinned vertices of the mesh (saved at Bind)."""
     if s.pin_mode == "NONE":
@@ -326,19 +314,14 @@ def _bind_target(s, helper, warnings):
     return volumes if s.use_islands else np.array([volumes.sum()])
 
 
-def _pin_targets(s, pins, X, lat_matrix, ob_matrix):
-    """[(vertex, target in lattice space)] for the pinned vertices, following the pin Empty: the
-    Empty's motion since Bind carries each pinned vertex from where it reaches the slot."""
+def _pin_targets(s, pins, X, lat_matrix):
+    """[(vertex, target in lattice space)] for the pinned vertices (`lattice_space.pin_targets`)."""
     if len(pins) == 0:
         return []
     if s.pin_target is None:
         raise ValueError("pins need a target Empty (Pin Target)")
-    M_t = meshio.matrix(s.pin_target.matrix_world)
-    M_t0 = np.array(s.pin_target_rest).reshape(4, 4)
-    M_mesh0 = np.array(s.pin_mesh_rest).reshape(4, 4)
-    carry = linalg3.matmul4(linalg3.affine_inverse(lat_matrix), M_t, linalg3.affine_inverse(M_t0), M_mesh0)
-    targets = meshio.transform(X[pins].astype(np.float64), carry)
-    return list(zip(pins.tolist(), targets))
+    return lattice_space.pin_targets(pins, X, lat_matrix, meshio.matrix(s.pin_target.matrix_world),
+                                     s.pin_target_rest, s.pin_mesh_rest)
 
 
 # Lattice data read in Object Mode. In a lattice's Edit Mode, `LatticePoint.co` holds garbage and
@@ -674,7 +657,7 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_we
                              "is scaled to zero along an axis on this frame: there is no lattice "
                              "space to deform in (the mesh shows undeformed)")
     L = linalg3.matmul4(linalg3.affine_inverse(M_lat), M_ob)
-    axes, directions = _directions(s, M_lat)
+    axes, directions = lattice_space.directions(s.axes, s.space, M_lat)
     editing = obj.mode == "EDIT"
     tris, faces_from = _faces(state, obj, ob_eval, len(X), tapped_tris, mod, may_write, editing)
     warnings = []
@@ -682,7 +665,7 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_we
     if len(pins) and faces_from != "mesh" and len(X) != len(obj.data.vertices):
         warnings.append("pins are off: the vertex count that reaches VP-FFD is not the mesh's")
         pins = pins[:0]
-    pin_targets = _pin_targets(s, pins, X, M_lat, M_ob)
+    pin_targets = _pin_targets(s, pins, X, M_lat)
     mobility = _mobility(s, lat_ob)
     correct = bool(axes or directions is not None or pin_targets)
     if tris is None and correct:
@@ -769,16 +752,15 @@ def _publish(obj, state, frame, result, t0):
     state.signature, state.result = (None if frame.stale_weights else frame.signature), result
     state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
     state.moved = float(np.abs(offsets32).max()) if len(offsets32) else 0.0
-    edges = _lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice) else cage.cage_edges(lattice.cells)
+    edges = (wireframe.lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice)
+             else wireframe.cage_edges(lattice.cells))
     state.overlay = (meshio.transform(result.points, frame.lattice_matrix), edges)
     state.matrix = frame.inputs.matrix      # object -> lattice space of this solve
     state.falloff_box = None
-    if isinstance(lattice, vp.Lattice) and frame.inputs.outside == "FALLOFF":
-        # Where the falloff ends: the lattice's box grown by the distance (in its sizes) per side.
-        grow = frame.inputs.falloff * (lattice.hi - lattice.lo)
-        lo, hi = lattice.lo - grow, lattice.hi + grow
-        corners = np.array([[(hi if k >> a & 1 else lo)[a] for a in range(3)] for k in range(8)])
-        state.falloff_box = meshio.transform(corners, frame.lattice_matrix)
+    mode = outside_modes.mode(frame.inputs.outside)
+    if isinstance(lattice, vp.Lattice) and mode.has_distance:
+        state.falloff_box = meshio.transform(wireframe.falloff_box(lattice, frame.inputs.falloff),
+                                             frame.lattice_matrix)
     binding = result.binding
     backend, backend_reason = state.backend
     s = state.settings
@@ -788,8 +770,8 @@ def _publish(obj, state, frame, result, t0):
                 backend_reason=backend_reason, n_verts=len(X), folds=None,
                 closed=None if binding is None else binding.is_closed,
                 input_volume=result.input_volume, rebound=result.rebound, outside=result.outside,
-                outside_follow=(frame.inputs.outside == "FOLLOW" if isinstance(lattice, vp.Lattice)
-                                else s.cage_outside == "FOLLOW"),
+                outside_follow=(mode if isinstance(lattice, vp.Lattice)
+                                else outside_modes.mode(s.cage_outside, "cage")).follows,
                 outside_mode=frame.inputs.outside, falloff=_fading(frame.inputs, result),
                 still=result.still, beyond=result.beyond, editing=frame.editing,
                 encloses_nothing=encloses_nothing(result))
@@ -823,19 +805,6 @@ def _publish(obj, state, frame, result, t0):
     _set_stats(obj, **info)
 
 
-def _lattice_edges(shape):
-    """(E, 2) index pairs of neighbouring lattice points, u fastest."""
-    nu, nv, nw = shape
-    index = np.arange(nu * nv * nw).reshape(nw, nv, nu)
-    pairs = []
-    for axis in range(3):
-        if index.shape[axis] > 1:
-            a = np.take(index, range(index.shape[axis] - 1), axis=axis).ravel()
-            b = np.take(index, range(1, index.shape[axis]), axis=axis).ravel()
-            pairs.append(np.stack([a, b], 1))
-    return np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
-
-
 def overlay_geometry(obj):
     """(corrected lattice or cage points in world space (N, 3), edges (E, 2), label) of the last
     solve, or None before the first one."""
@@ -849,17 +818,13 @@ def overlay_geometry(obj):
     return state.overlay + (label,)
 
 
-#: The 12 edges of a box whose corner k sits at (k & 1, k >> 1 & 1, k >> 2 & 1).
-BOX_EDGES = np.array([(k, k | 1 << a) for k in range(8) for a in range(3) if not k >> a & 1])
-
-
 def falloff_geometry(obj):
     """(corners in world space (8, 3), edges (12, 2)) of the box where the falloff of the last
     solve ends, or None (no falloff, or nothing shown now)."""
     state = _cache.get(obj.session_uid)
     if overlay_geometry(obj) is None or getattr(state, "falloff_box", None) is None:
         return None
-    return state.falloff_box, BOX_EDGES
+    return state.falloff_box, wireframe.BOX_EDGES
 
 
 def check_folds(obj, depsgraph):
@@ -891,7 +856,7 @@ def _fading(inputs, result):
     """Vertices outside the lattice that Falloff moves partly: those outside (one definition of
     outside for every count: a vertex on the lattice's face is inside) and not beyond the
     falloff distance."""
-    if inputs.outside != "FALLOFF" or not isinstance(inputs.lattice, vp.Lattice):
+    if not outside_modes.mode(inputs.outside).has_distance or not isinstance(inputs.lattice, vp.Lattice):
         return result.falloff
     return max(result.outside - result.beyond, 0)
 
@@ -1019,7 +984,7 @@ def bind(obj, depsgraph):
 def outside_message(info, is_cage):
     """Words for `info.outside` points of `info.n_verts` outside the lattice or cage."""
     where = "the cage's region" if is_cage else "the lattice"
-    if not is_cage and info.outside_mode == "FALLOFF":
+    if not is_cage and outside_modes.mode(info.outside_mode).has_distance:
         what = (f"the deformation fades out over {info.falloff:,} of them; "
                 f"{info.beyond or 0:,} beyond the falloff distance stay where they are")
     else:

@@ -4,6 +4,7 @@ Bake and Status, with split properties and no animation decorators."""
 import bpy
 
 from . import bake, cage, compiled_backend, engine, modifier
+from ..vpffd_addon import outside as outside_modes
 from .status_line import applied_lattice, headline, status_lines
 from .text import count, lines, percent, sentence
 
@@ -19,6 +20,17 @@ def message(layout, context, text, icon="NONE"):
     col = layout.column(align=True)
     for k, line in enumerate(lines(sentence(text), width - 4)):
         col.label(text=line, icon=icon if k == 0 else "BLANK1")
+
+
+def outside_row(layout, s, prop, kind):
+    """The Outside setting `prop` as one button per mode of the table (`vpffd_addon.outside`):
+    the earlier names the setting still accepts are not offered."""
+    split = layout.split(factor=0.4, align=True)
+    split.alignment = "RIGHT"
+    split.label(text="Outside")
+    row = split.row(align=True)
+    for m in outside_modes.modes(kind):
+        row.prop_enum(s, prop, m.name)
 
 
 class _Panel:
@@ -108,8 +120,8 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
         s = context.object.vpffd
         col = self.draw_split().column()
         col.prop(s, "cage_depth")
-        col.prop(s, "cage_outside")
-        if s.outside == "FALLOFF":
+        outside_row(col, s, "cage_outside", "cage")
+        if "cage" not in outside_modes.mode(s.outside).kinds:
             message(col, context, "Outside: Falloff is for lattices (a cage's region is not a box): "
                                   "this cage's own Outside applies", icon="INFO")
         info = engine.status(context.object)
@@ -129,9 +141,9 @@ class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
         ob = context.object
         s = ob.vpffd
         col = self.draw_split().column()
-        col.prop(s, "outside")
+        outside_row(col, s, "outside", "lattice")
         sub = col.column()
-        sub.active = s.outside == "FALLOFF"
+        sub.active = outside_modes.mode(s.outside).has_distance
         sub.prop(s, "falloff_distance")
         info = engine.status(ob)
         if s.is_bound and info.outside:

@@ -190,13 +190,13 @@ def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
     # A cage whose stored cells are inside out.
     cage_ob = _box_cage_around(ball)
     cells = [tuple(tuple(reversed(f)) for f in faces) for faces in _cells(ext, cage_ob)]
-    cage_ob.data["vpffd_cells"] = ext.module.operators.cage.encode_cells(cells)
+    cage_ob.data["vpffd_cells"] = ext.module.vpffd_addon.cage_cells.encode_cells(cells)
     ball.vpffd.lattice = cage_ob
     with pytest.raises(RuntimeError, match="(?i)inverted"):
         _bind(ball)
     assert not ball.vpffd.is_bound
     # A good cage, bound; then a cage vertex is deleted.
-    cage_ob.data["vpffd_cells"] = ext.module.operators.cage.encode_cells(
+    cage_ob.data["vpffd_cells"] = ext.module.vpffd_addon.cage_cells.encode_cells(
         [tuple(tuple(reversed(f)) for f in faces) for faces in cells])
     assert _bind(ball, axes="XYZ", cage_depth=1) == {"FINISHED"}
     bpy.context.view_layer.objects.active = cage_ob

@@ -96,7 +96,9 @@ def test_inside_only_leaves_outside_vertices_exactly_in_place(ext):
     ob, tris = _half_outside("Ball")
     lat = _squashed("L")
     rest = _mesh_co(ob)
+    # INSIDE, the earlier name of Stay: scripts that set it keep working, and it reads STAY.
     assert _bind(ob, lattice=lat, axes="XYZ", outside="INSIDE") == {"FINISHED"}
+    assert ob.vpffd.outside == "STAY"
     co = evaluated_world(ob)[0]
     outside = (np.abs(rest) > 0.5 + 1e-6).any(1)
     assert outside.sum() > 100
@@ -185,3 +187,21 @@ def test_target_bind_keeps_volume_scale_times_the_volume_at_bind(ext):
         assert abs(info.volume_percent - 100 * measured) <= 1e-6 * 100 * measured, (frame, info)
         assert line(info, True, False)[0] == f"volume {info.volume_percent:.3f}% of its volume at Bind"
     assert _engine(ext).status(ob).input_percent < 99.5, "the bend lost volume before VP-FFD"
+
+
+def test_files_saved_with_the_earlier_outside_names_read_the_same_modes(ext, tmp_path):
+    """A .blend stores an Outside setting as its number: an earlier version's Inside Only (the
+    lattice's 2) and the cage's Stay (1) read STAY, after a save and a load too."""
+    ob = bpy.data.objects.new("Stored", bpy.data.meshes.new("Stored"))
+    bpy.context.scene.collection.objects.link(ob)
+    ob.vpffd["outside"], ob.vpffd["cage_outside"] = 2, 1     # as such a file holds them
+    assert (ob.vpffd.outside, ob.vpffd.cage_outside) == ("STAY", "STAY")
+    ob.vpffd["outside"] = 1
+    assert ob.vpffd.outside == "FALLOFF"
+    ob.vpffd.outside, ob.vpffd.cage_outside = "INSIDE", "FOLLOW"
+    path = str(tmp_path / "outside.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    back = bpy.data.objects["Stored"].vpffd
+    assert (back.outside, back.cage_outside) == ("STAY", "FOLLOW")
+    assert (back["outside"], back.get("cage_outside", 0)) == (2, 0)

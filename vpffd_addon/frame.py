@@ -16,7 +16,7 @@ import numpy as np
 from . import lattice_eval, parallel
 from .binder import bind
 from .cage import Cage
-from .falloff import outside_factor
+from .outside import mode as outside_mode, outside_factor
 from .jacobian import jacobian_det
 from .lattice import Lattice
 from .linalg3 import affine, affine_inverse, det3
@@ -45,9 +45,10 @@ class FrameInputs:
     dtype: the binding's float type.
     use_compiled: bind with the compiled kernels once they are loaded (bit for bit NumPy's
         binding); False binds with NumPy, the reference. The solve's kernels are the solver's.
-    outside, falloff: what a lattice does to positions outside its rest box (`falloff.py`:
-        "FOLLOW" as Blender's Lattice modifier, "FALLOFF" fading out over `falloff` lattice-size
-        units, "INSIDE" not at all); a factor on the influence, from the positions as they enter.
+    outside, falloff: what a lattice does to positions outside its rest box (`outside.py`, the
+        table of modes: "FOLLOW" as Blender's Lattice modifier, "FALLOFF" fading out over
+        `falloff` lattice-size units, "STAY" not at all); a factor on the influence, from the
+        positions as they enter.
     target_volumes: the volume to keep, in the object's space, instead of the volume that reaches
         the slot (None): one number, or one per island with `islands` (e.g. the volume at Bind);
         volume_scale multiplies it. When its count does not match the islands that reach the
@@ -202,7 +203,7 @@ class Pipeline:
             lw = lattice_eval.interpolate(lat, verts, np.asarray(inp.lattice_weights, np.float64))
             influence = weights * (weights * inp.strength) * lw
         factor = None
-        if isinstance(lat, Lattice) and str(inp.outside).upper() != "FOLLOW":
+        if isinstance(lat, Lattice) and outside_mode(inp.outside).factor is not None:
             factor = outside_factor(lat, verts, inp.outside, inp.falloff)
             influence = influence * factor
         # Strength scales every displacement alike: it scales the control points' displacement.

@@ -17,6 +17,7 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import cage_cells, lattice_space, linalg3, wireframe
 from ..vpffd_addon import outside as outside_modes
+from ..vpffd_addon.frame_key import FrameKey
 from ..vpffd_addon.steps import NumpySteps
 from . import cage, compiled_backend, gpu_backend, meshio, modifier
 from .cache_modifier import find_cache, using_cache
@@ -483,7 +484,7 @@ class _Frame:
     """What Blender hands over for one update of a bound object, ready for the core."""
     helper: object              #: its solver helper, where the offsets go
     inputs: "vp.FrameInputs"
-    signature: tuple            #: (settings, arrays): equal signatures give equal results
+    signature: FrameKey         #: matching keys give equal results
     faces_from: Optional[str]   #: "mesh", "final", "tap" or None (see `_faces`)
     lattice_matrix: np.ndarray  #: (4, 4) world matrix of the lattice object
     warnings: list
@@ -648,7 +649,7 @@ def _control_inputs(obj, state, s, lat_ob, depsgraph, helper):
 def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_weights, may_write):
     """The `_Frame` of the tap `tap`."""
     X, weights, tapped_tris = tap
-    lattice, grid, points, lattice_weights, cage_options, M_lat = _control_inputs(
+    lattice, _, points, lattice_weights, cage_options, M_lat = _control_inputs(
         obj, state, s, lat_ob, depsgraph, helper)
     M_ob = meshio.matrix(ob_eval.matrix_world)
     for what, M in (("lattice", M_lat), ("mesh", M_ob)):
@@ -675,13 +676,6 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_we
         correct = False
     target_volumes = _bind_target(s, helper, warnings)
     outside = s.outside if isinstance(lattice, vp.Lattice) else "FOLLOW"   # a cage has its own rule
-    settings = (outside, s.falloff_distance, s.target,
-                None if target_volumes is None else target_volumes.tobytes(),
-                axes, s.space, s.strength, s.volume_scale, s.use_islands, s.backend, repr(pin_targets),
-                s.use_fold_attribute, cage_options, faces_from, state.faces_key, editing, type(lattice).__name__,
-                getattr(lattice, "shape", None), getattr(lattice, "interpolation", None))
-    arrays = (X, weights, points, L, grid, lattice_weights, mobility, directions,
-              tris if faces_from == "tap" else None)
     inputs = vp.FrameInputs(
         positions=X, tris=tris, lattice=lattice, points=points, matrix=L, weights=weights,
         lattice_weights=lattice_weights, strength=s.strength, correct=correct, axes=axes,
@@ -689,17 +683,17 @@ def _frame(obj, ob_eval, state, s, lat_ob, depsgraph, tap, mod, helper, stale_we
         islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
         dtype=np.float32, use_compiled=s.backend != "NUMPY", outside=outside,
         falloff=s.falloff_distance, target_volumes=target_volumes)
-    return _Frame(helper=helper, inputs=inputs, signature=(settings, arrays),
+    # Beside the core's inputs, what changes what is shown: where the solve runs, the fold
+    # attribute, where the faces came from (the panel says it) and Edit Mode.
+    signature = FrameKey(inputs, extra=(s.backend, s.use_fold_attribute, faces_from, editing))
+    return _Frame(helper=helper, inputs=inputs, signature=signature,
                   faces_from=faces_from, lattice_matrix=M_lat, warnings=warnings,
                   stale_weights=stale_weights, editing=editing)
 
 
 def _unchanged(state, frame):
     """Whether `frame` has the inputs of the last solve (its result is already shown)."""
-    if state.signature is None or state.signature[0] != frame.signature[0]:
-        return False
-    return all((a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
-               for a, b in zip(state.signature[1], frame.signature[1]))
+    return frame.signature.matches(state.signature)
 
 
 def _evaluate(state, frame):

@@ -18,6 +18,7 @@ def register():
     log.install()
     _register_classes()
     properties.register()
+    gpu_backend.register()
     handlers.register()
     demos.register()
     cage.register()
@@ -27,7 +28,7 @@ def register():
 
 def unregister():
     compiled_backend.unregister()
-    gpu_backend.release()
+    gpu_backend.unregister()
     overlay.unregister()
     fit.unregister()
     cage.unregister()

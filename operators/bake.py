@@ -2,7 +2,7 @@
 that Blender's own Mesh Cache modifier reads, and a switch between that cache and the live solve.
 
 A baked frame is what the VP-FFD slot gives on that frame (the positions that reach it plus the
-offsets the engine writes, `engine.slot_output`), so the cache reproduces the live result. Modifiers
+offsets VP-FFD writes, `update.slot_output`), so the cache reproduces the live result. Modifiers
 before VP-FFD are baked in. `switch_to_cache` puts a Mesh Cache modifier where the VP-FFD modifier
 is in the stack and disables (does not delete) the VP-FFD modifier: a file saved that way renders on a machine
 without the extension. `switch_to_live` goes back; the cache modifier stays, disabled, remembering
@@ -33,9 +33,11 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
 from ..vpffd_addon import pointcache
-from . import engine, modifier
+from . import modifier
 from .cache_modifier import CACHE_MODIFIER_NAME, find_cache, using_cache
 from .text import report
+from .status import status
+from .update import slot_output, update
 
 log = logging.getLogger(__name__)
 
@@ -229,7 +231,7 @@ def switch_to_cache(obj, filepath, fmt="PC2", frame_start=None, scene=None):
     except OSError as exc:
         raise BakeError(f"cannot read {path}: {_why(exc)}") from None
     # The cache replaces what reaches the VP-FFD slot: its point count is the slot's.
-    live = engine.slot_output(obj)
+    live = slot_output(obj)
     n = len(obj.data.vertices) if live is None else len(live)
     if info["points"] != n:
         raise BakeError(f"{path} holds {info['points']} points but {n} reach the VP-FFD modifier "
@@ -283,7 +285,7 @@ def switch_to_live(obj):
         cache.show_viewport = cache.show_render = False
     vp_mod.show_viewport = vp_mod.show_render = True
     if obj.vpffd.is_bound:
-        engine.update(obj, bpy.context.evaluated_depsgraph_get(), force=True)  # never raises
+        update(obj, bpy.context.evaluated_depsgraph_get(), force=True)  # never raises
     obj.update_tag()
 
 
@@ -340,11 +342,11 @@ class Baker:
             cache.show_viewport = False
         # The cache holds what the VP-FFD slot gives, so its point count is the slot's.
         self.scene.frame_set(self.frame_start)
-        engine.update(obj, self._depsgraph(), force=True)
-        first = engine.slot_output(obj)
-        if engine.status(obj).error or first is None:
+        update(obj, self._depsgraph(), force=True)
+        first = slot_output(obj)
+        if status(obj).error or first is None:
             self._restore()
-            raise BakeError(f"frame {self.frame_start}: {engine.status(obj).error or 'no result'}")
+            raise BakeError(f"frame {self.frame_start}: {status(obj).error or 'no result'}")
         n = self.n_points = len(first)
         try:
             if self.fmt == "PC2":
@@ -378,11 +380,11 @@ class Baker:
         # The frame handler has already solved this frame; a non-forced update re-solves exactly
         # when the inputs differ from that solve. `start` forced the first frame's solve, so no
         # stale state (e.g. an undo) can slip in.
-        engine.update(self.obj, depsgraph)
-        error = engine.status(self.obj).error
+        update(self.obj, depsgraph)
+        error = status(self.obj).error
         if error:
             raise BakeError(f"frame {f}: {error}")
-        coords = engine.slot_output(self.obj)
+        coords = slot_output(self.obj)
         if coords is None or len(coords) != self.n_points:
             raise BakeError(f"frame {f}: the number of points reaching VP-FFD changed "
                             f"({self.n_points} at the first frame)")

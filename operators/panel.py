@@ -3,10 +3,12 @@
 Bake and Status, with split properties and no animation decorators."""
 import bpy
 
-from . import bake, cage, compiled_backend, engine, modifier
+from . import bake, cage, compiled_backend, modifier
 from ..vpffd_addon import outside as outside_modes
 from .status_line import applied_lattice, headline, status_lines
 from .text import count, lines, percent, sentence
+from .saved_data import JACOBIAN_ATTRIBUTE
+from .status import outside_message, status
 
 
 def _settings(context):
@@ -75,7 +77,7 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
             return
         s = ob.vpffd
         # First line: what VP-FFD does to this object now (details in the Status sub-panel).
-        text, icon = headline(engine.status(ob), s.is_bound, s.is_bound and bake.using_cache(ob),
+        text, icon = headline(status(ob), s.is_bound, s.is_bound and bake.using_cache(ob),
                               applied_lattice(s), compiled_backend.status()[0])
         message(layout, context, text, icon=icon)
         col = layout.column()
@@ -124,9 +126,9 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
         if "cage" not in outside_modes.mode(s.outside).kinds:
             message(col, context, "Outside: Falloff is for lattices (a cage's region is not a box): "
                                   "this cage's own Outside applies", icon="INFO")
-        info = engine.status(context.object)
+        info = status(context.object)
         if s.is_bound and info.outside:
-            message(col, context, engine.outside_message(info, True), icon="INFO")
+            message(col, context, outside_message(info, True), icon="INFO")
 
 
 class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
@@ -145,9 +147,9 @@ class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
         sub = col.column()
         sub.active = outside_modes.mode(s.outside).has_distance
         sub.prop(s, "falloff_distance")
-        info = engine.status(ob)
+        info = status(ob)
         if s.is_bound and info.outside:
-            message(col, context, engine.outside_message(info, False), icon="INFO")
+            message(col, context, outside_message(info, False), icon="INFO")
 
 
 class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
@@ -164,7 +166,7 @@ class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
         sub.prop(s, "volume_scale")
         sub.prop(s, "target")
         if s.target == "BIND" and s.is_bound:
-            info = engine.status(ob)
+            info = status(ob)
             if info.input_percent is not None:
                 message(sub, context, f"what reaches VP-FFD has {percent(info.input_percent)} of "
                                       "the volume at Bind", icon="INFO")
@@ -204,9 +206,9 @@ class OBJECT_PT_vpffd_folds(_BoundSubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.draw_split()
-        info = engine.status(context.object)
+        info = status(context.object)
         if context.object.vpffd.use_fold_attribute:
-            message(layout, context, f"the attribute '{engine.JACOBIAN_ATTRIBUTE}' holds the "
+            message(layout, context, f"the attribute '{JACOBIAN_ATTRIBUTE}' holds the "
                                      "Jacobian determinant of every vertex")
         if info.folds is not None and not (info.error or info.paused or info.switched_off):
             message(layout, context, f"{count(info.folds)} inverted vertices" if info.folds
@@ -240,7 +242,7 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
-        for text, icon in status_lines(engine.status(ob), bake.using_cache(ob), ob.vpffd.backend):
+        for text, icon in status_lines(status(ob), bake.using_cache(ob), ob.vpffd.backend):
             message(self.layout, context, text, icon=icon)
 
 classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction,

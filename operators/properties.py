@@ -47,9 +47,9 @@ def _redraw(self, context):
 
 
 def _settings_changed(self, context):
-    from . import engine
+    from .update import request_update
     modifier.sync_inputs(self.id_data)
-    engine.request_update(self.id_data)
+    request_update(self.id_data)
 
 
 def _lattice_changed(self, context):

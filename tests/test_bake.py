@@ -127,6 +127,11 @@ def bake_module(vpffd):
             bpy.utils.unregister_class(cls)
 
 
+def ops_of(bake_module):
+    """The extension's operators package (the bake module's own package)."""
+    return sys.modules[bake_module.__package__]
+
+
 @pytest.fixture
 def bk(bake_module):
     eh.reset_scene()
@@ -322,7 +327,7 @@ def test_bad_paths_are_refused(bk, tmp_path):
     path = tmp_path / "y.pc2"
     bk.bake(ball, scene, str(path), FIRST, 2)
     scene.frame_set(2)
-    live = bk.engine.slot_output(ball)
+    live = ops_of(bk).update.slot_output(ball)
     np.testing.assert_array_equal(pcache.read_pc2(path)[0][-1], live)
     assert not np.array_equal(live, np.array([v.co for v in ball.data.vertices], np.float32))
 
@@ -536,7 +541,7 @@ def test_status_panel_logic_in_a_recording_layout(bk, tmp_path):
     (tests/e2e/gui_session.py)."""
     import importlib
     from types import SimpleNamespace
-    status_panel = importlib.import_module(bk.engine.__package__ + ".panel").OBJECT_PT_vpffd_status
+    status_panel = importlib.import_module(bk.__package__ + ".panel").OBJECT_PT_vpffd_status
     ball, _ = _rig()
     bpy.context.scene.frame_set(6)
 
@@ -547,7 +552,7 @@ def test_status_panel_logic_in_a_recording_layout(bk, tmp_path):
         status_panel.draw(fake, context)
         return " ".join(c[3].get("text", "") for c in log if c[1] == "label")
 
-    info = bk.engine.status(ball)
+    info = ops_of(bk).status.status(ball)
     text = drawn()
     plain = f"Lattice modifier would give {info.plain_percent:.3f}% of its input"
     assert plain in text and "switched off" not in text
@@ -572,7 +577,7 @@ def test_blenders_apply_or_remove_after_a_bake_leaves_nothing_of_vpffds(bk, tmp_
     bk.bake(ball, scene, str(tmp_path / "b.pc2"), FIRST, LAST, switch=True)
     bk.switch_to_live(ball)
     scene.frame_set(6)
-    helper_name = bk.engine.modifier.get_input(_vp_modifier(ball), bk.engine.modifier.SOLVER_INPUT).name
+    helper_name = ops_of(bk).modifier.get_input(_vp_modifier(ball), ops_of(bk).modifier.SOLVER_INPUT).name
     if how == "apply":
         with bpy.context.temp_override(object=ball, active_object=ball):
             assert bpy.ops.object.modifier_apply(modifier=_vp_modifier(ball).name) == {"FINISHED"}

@@ -97,6 +97,7 @@ class FrameResult:
     reference_volume: float = None  #: the volume aimed at before volume_scale: the input's, or
     #: the given target's (lattice space)
     target_given: bool = False     #: whether the given target_volumes were kept (not the input's)
+    backend: str = None            #: the backend whose steps solved (`backends.py`; None: no solve)
 
 
 def _affine(points, mat):
@@ -246,9 +247,11 @@ class Pipeline:
         if solution is not None:
             out, used, volume, plain = solution.verts, solution.points, solution.volume, solution.plain_volume
             warnings.extend(solution.warnings)
+            backend = solution.backend
         else:
             sol = binding.solve(P_used, axes="", preserve_volume=False)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
+            backend = sol.backend
         positions, still = _keep_still(_affine(out, back), inp.positions, influence)
         falloff = 0 if factor is None else int(((factor > 0) & (factor < 1)).sum())
         beyond = 0 if factor is None else int((factor == 0).sum())
@@ -256,7 +259,7 @@ class Pipeline:
                            volume=volume, plain_volume=plain, warnings=tuple(warnings),
                            binding=binding, rebound=rebound, solution=solution,
                            outside=int(binding.n_outside), falloff=falloff, beyond=beyond, still=still,
-                           reference_volume=reference, target_given=target_given)
+                           reference_volume=reference, target_given=target_given, backend=backend)
 
     @staticmethod
     def folds(result):

@@ -5,10 +5,10 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import (bake, cage, compiled_backend, demos, fit, gpu_backend, handlers, log, ops, overlay,
+from . import (bake_ops, cage, compiled_backend, demos, fit, gpu_backend, handlers, log, ops, overlay,
                panel, properties)
 
-classes = (properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
+classes = (properties.classes + ops.classes + bake_ops.classes + panel.classes + demos.classes
            + cage.classes + fit.classes)
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)

@@ -3,7 +3,8 @@
 Bake and Status, with split properties and no animation decorators."""
 import bpy
 
-from . import bake, cage, compiled_backend, modifier
+from . import bake_ops, cage, compiled_backend, modifier
+from .cache_modifier import using_cache
 from ..vpffd_addon import outside as outside_modes
 from .status_line import applied_lattice, headline, status_lines
 from .text import count, lines, percent, sentence
@@ -77,7 +78,7 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
             return
         s = ob.vpffd
         # First line: what VP-FFD does to this object now (details in the Status sub-panel).
-        text, icon = headline(status(ob), s.is_bound, s.is_bound and bake.using_cache(ob),
+        text, icon = headline(status(ob), s.is_bound, s.is_bound and using_cache(ob),
                               applied_lattice(s), compiled_backend.status()[0])
         message(layout, context, text, icon=icon)
         col = layout.column()
@@ -86,7 +87,7 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
         row.prop_search(s, "vertex_group", ob, "vertex_groups", text="Vertex Group")
         row.prop(s, "invert_vertex_group", text="", icon="ARROW_LEFTRIGHT")
         col.prop(s, "strength", slider=True)
-        if s.is_bound and modifier.find(ob) is not None and not bake.using_cache(ob):
+        if s.is_bound and modifier.find(ob) is not None and not using_cache(ob):
             col.prop(s, "enabled")     # on the cache, "Use Live Solve" switches back instead
 
         row = layout.row(align=True)
@@ -234,7 +235,7 @@ class OBJECT_PT_vpffd_bake(_BoundSubPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context: bpy.types.Context) -> None:
-        bake.draw_bake(self.draw_split(), context.object)
+        bake_ops.draw_bake(self.draw_split(), context.object)
 
 
 class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
@@ -242,7 +243,7 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
-        for text, icon in status_lines(status(ob), bake.using_cache(ob), ob.vpffd.backend):
+        for text, icon in status_lines(status(ob), using_cache(ob), ob.vpffd.backend):
             message(self.layout, context, text, icon=icon)
 
 classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction,

@@ -36,7 +36,7 @@ MUTATIONS = {
         "int global_index() { this is not GLSL; return",
         ["tests/test_gpu_backend.py"], {}),
     "bake-esc-ignored": (
-        "operators/bake.py",
+        "operators/bake_ops.py",
         '        if event.type == "ESC" and event.value == "PRESS":',
         '        if event.type == "NONE_SUCH" and event.value == "PRESS":',
         ["tests/e2e/test_gui_window.py"], {"VPFFD_NO_E2E": ""}),

@@ -9,11 +9,12 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import lattice_space, linalg3
 from ..vpffd_addon.frame_key import FrameKey
-from . import meshio, modifier
+from . import meshio, modifier, node_group, solver_helper
 from .control_read import control_inputs, is_control, missing_control, mobility_of
 from .publish import zero_offsets
 from .saved_data import BIND_VOLUME_PROPERTY, PIN_ATTRIBUTE, PIN_PROPERTY, float_attribute
 from .status import set_status
+from .tap import read_tap
 
 
 @dataclasses.dataclass
@@ -39,13 +40,13 @@ def read(obj, state, mod, depsgraph, helpers_taken):
     # Read what reached the slot before touching the modifier: writing its inputs tags the
     # object, and Blender 4.4+ then refuses to hand out its evaluated geometry.
     ob_eval = obj.evaluated_get(depsgraph)
-    tap = modifier.read_tap(ob_eval, depsgraph)
+    tap = read_tap(ob_eval, depsgraph)
     stale_weights = False
     if not rendering:
         stale_weights = modifier.sync_inputs(obj, mod)
-        helper = modifier.helper(obj, mod, exclusive_of=helpers_taken or ())
+        helper = solver_helper.helper(obj, mod, exclusive_of=helpers_taken or ())
     else:
-        helper = modifier.get_input(mod, modifier.SOLVER_INPUT)
+        helper = node_group.get_input(mod, node_group.SOLVER_INPUT)
     if helper is None:
         raise ValueError("the VP-FFD modifier has no solver helper: Re-bind")
     if helpers_taken is not None:
@@ -155,7 +156,7 @@ def _faces(state, obj, ob_eval, n, tapped, mod, may_write, editing=False):
     mesh = obj.data
     if editing:
         if may_write:
-            modifier.set_input(mod, modifier.FACES_INPUT, True)
+            node_group.set_input(mod, node_group.FACES_INPUT, True)
         if tapped is not None and len(tapped) and int(tapped.max()) < n:
             return tapped, "tap"
         if state.faces is not None and len(state.faces) and int(state.faces.max()) < n:
@@ -167,13 +168,13 @@ def _faces(state, obj, ob_eval, n, tapped, mod, may_write, editing=False):
         final = ob_eval.data
         if final is None or len(final.vertices) != n:
             if may_write:
-                modifier.set_input(mod, modifier.FACES_INPUT, True)
+                node_group.set_input(mod, node_group.FACES_INPUT, True)
             if tapped is not None and len(tapped) and int(tapped.max()) < n:
                 return tapped, "tap"
             return None, None
         source, key = final, ("final", meshio.topology_signature(final))
     if may_write:
-        modifier.set_input(mod, modifier.FACES_INPUT, False)
+        node_group.set_input(mod, node_group.FACES_INPUT, False)
     if state.faces_key != key:
         state.faces, state.faces_key = meshio.mesh_triangles(source), key
     return state.faces, key[0]

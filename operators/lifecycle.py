@@ -4,7 +4,7 @@ import numpy as np
 
 from .. import vpffd_addon as vp
 from ..vpffd_addon import linalg3
-from . import cage, meshio, modifier
+from . import cage, meshio, modifier, node_group, solver_helper
 from .bound import forget, states
 from .control_read import cage_points, is_control, missing_control
 from .release import note_applied, unbind
@@ -75,7 +75,7 @@ def bind(obj, depsgraph):
     s.applied_lattice = ""
     modifier.ensure(obj)
     # What Bind saves goes on the solver helper, local data even when the mesh is linked.
-    helper = modifier.helper(obj)
+    helper = solver_helper.helper(obj, modifier.find(obj))
     for key, value in ((PIN_PROPERTY, np.flatnonzero(pins > 0).tolist() if pins.any() else None),
                        (CAGE_REST_PROPERTY, None if cage_rest is None else cage_rest.ravel().tolist()),
                        (BIND_VOLUME_PROPERTY, None)):   # captured below, from this Bind's input
@@ -86,7 +86,7 @@ def bind(obj, depsgraph):
     forget(obj)
     depsgraph.update()
     update(obj, depsgraph, force=True)
-    if modifier.get_input(modifier.find(obj), modifier.FACES_INPUT):
+    if node_group.get_input(modifier.find(obj), node_group.FACES_INPUT):
         depsgraph.update()              # the modifier now passes its input's faces along
         update(obj, depsgraph, force=True)
     info = status(obj)

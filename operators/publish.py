@@ -7,7 +7,7 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import outside as outside_modes
 from ..vpffd_addon import backends, wireframe
-from . import compiled_backend, meshio, modifier
+from . import compiled_backend, meshio, modifier, node_group, solver_helper
 from .saved_data import JACOBIAN_ATTRIBUTE, float_attribute
 from .status import set_status
 
@@ -18,11 +18,11 @@ FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request o
 def zero_offsets(obj, state=None):
     """Show the slot's input undeformed (a defined result for a frame that cannot be solved)."""
     mod = modifier.find(obj)
-    helper = modifier.get_input(mod, modifier.SOLVER_INPUT) if mod is not None else None
-    if helper is None or helper.get(modifier.HELPER_TAG) is None:
+    helper = node_group.get_input(mod, node_group.SOLVER_INPUT) if mod is not None else None
+    if helper is None or helper.get(solver_helper.HELPER_TAG) is None:
         return
     if len(helper.data.vertices):
-        modifier.write_offsets(helper, np.zeros((0, 3), np.float32))
+        solver_helper.write_offsets(helper, np.zeros((0, 3), np.float32))
     if state is not None:
         state.written = None
 
@@ -34,7 +34,7 @@ def _write(state, helper, offsets):
     if state.written is not None and np.array_equal(state.written, values) \
             and len(helper.data.vertices) == len(values):
         return values
-    modifier.write_offsets(helper, values)
+    solver_helper.write_offsets(helper, values)
     state.written = values
     return values
 

@@ -2,7 +2,7 @@
 `release` (the modifier is already gone: removed, or applied by Blender)."""
 import numpy as np
 
-from . import meshio, modifier
+from . import meshio, modifier, solver_helper
 from .bound import forget, states
 from .cache_modifier import find_cache, using_cache
 from .saved_data import CAGE_REST_PROPERTY, JACOBIAN_ATTRIBUTE, LEGACY_ATTRIBUTES, PIN_ATTRIBUTE, remove_attribute
@@ -17,7 +17,7 @@ def release(obj):
     cache = find_cache(obj)
     if cache is not None and not using_cache(obj):
         obj.modifiers.remove(cache)
-    modifier.free_unused_helpers(obj)
+    solver_helper.free_unused_helpers(obj)
     if mesh.library is None:
         for name in (PIN_ATTRIBUTE, JACOBIAN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
             remove_attribute(mesh, name)

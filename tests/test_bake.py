@@ -577,7 +577,7 @@ def test_blenders_apply_or_remove_after_a_bake_leaves_nothing_of_vpffds(bk, tmp_
     bk.bake(ball, scene, str(tmp_path / "b.pc2"), FIRST, LAST, switch=True)
     ops_of(bk).cache_switch.switch_to_live(ball)
     scene.frame_set(6)
-    helper_name = ops_of(bk).modifier.get_input(_vp_modifier(ball), ops_of(bk).modifier.SOLVER_INPUT).name
+    helper_name = ops_of(bk).node_group.get_input(_vp_modifier(ball), ops_of(bk).node_group.SOLVER_INPUT).name
     if how == "apply":
         with bpy.context.temp_override(object=ball, active_object=ball):
             assert bpy.ops.object.modifier_apply(modifier=_vp_modifier(ball).name) == {"FINISHED"}

@@ -78,8 +78,8 @@ def test_box_cage_squash_keeps_volume_every_frame_and_matches_the_core(ext):
     ball.vpffd.axes = "NONE"
     bpy.context.scene.frame_set(15)
     dg = bpy.context.evaluated_depsgraph_get()
-    modifier = ext.module.operators.modifier
-    helper = modifier.get_input(modifier.find(ball), modifier.SOLVER_INPUT)   # Bind saved it there
+    ops = ext.module.operators
+    helper = ops.node_group.get_input(ops.modifier.find(ball), ops.node_group.SOLVER_INPUT)   # Bind saved it there
     cage_rest = np.array(helper["vpffd_cage_rest"]).reshape(-1, 3)
     cage = core.Cage(cage_rest, _cells(ext, cage_ob))
     M_cage = np.array(cage_ob.matrix_world)

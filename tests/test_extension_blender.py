@@ -470,7 +470,10 @@ def test_renders_leave_what_they_do_not_render_as_the_viewport_shows_it(ext, tmp
     scene.render.resolution_x = scene.render.resolution_y = 32
     scene.render.filepath = str(tmp_path / "frame_")
     scene.frame_start, scene.frame_end = 14, 16
-    helper_of = ext.module.operators.modifier.helper
+    ops_pkg = ext.module.operators
+
+    def helper_of(ob):
+        return ops_pkg.solver_helper.helper(ob, ops_pkg.modifier.find(ob))
     during = []
 
     def record(scene, depsgraph=None):     # runs after VP-FFD's own frame handler

@@ -178,13 +178,13 @@ def test_vpffd_apply_needs_its_input_to_be_the_meshs_own_coordinates(ext):
 def test_a_file_with_an_older_node_group_is_rebuilt_when_it_loads(ext, tmp_path):
     """A file saved by an earlier version carries that version's node group, whose tap this one
     may not read: loading the file rebuilds the group, and the mesh deforms as before."""
-    modifier = ext.module.operators.modifier
+    node_group = ext.module.operators.node_group
     ball, lat = _ball(), _lattice()
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
     shown = _coords(ball)
     ng = ball.modifiers["VP-FFD"].node_group
     # What an older version left: its own version number, and a tree without today's tap.
-    ng[modifier._TAG] = modifier._VERSION - 1
+    ng[node_group.GROUP_TAG] = node_group.GROUP_VERSION - 1
     ng.nodes.clear()
     ng.links.new(ng.nodes.new("NodeGroupInput").outputs[0], ng.nodes.new("NodeGroupOutput").inputs[0])
     path = str(tmp_path / "older.blend")
@@ -192,7 +192,7 @@ def test_a_file_with_an_older_node_group_is_rebuilt_when_it_loads(ext, tmp_path)
     bpy.ops.wm.open_mainfile(filepath=path)
     ball = bpy.data.objects["Ball"]
     ng = ball.modifiers["VP-FFD"].node_group
-    assert ng.get(modifier._TAG) == modifier._VERSION
+    assert ng.get(node_group.GROUP_TAG) == node_group.GROUP_VERSION
     bpy.context.scene.frame_set(bpy.context.scene.frame_current)
     assert _ops(ext).status.stats(ball).get("error") is None
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)

@@ -231,7 +231,7 @@ def test_fixed_bug_float32_attribute_overflow(ext, attribute):
     bpy.context.scene.frame_set(1)
     if attribute == "vpffd_offset":     # the offsets live in the modifier's solver helper now
         mod = _modifier().find(ob)
-        buf = _modifier().read_offsets(_modifier().get_input(mod, _modifier().SOLVER_INPUT)).ravel()
+        buf = _ops().solver_helper.read_offsets(_ops().node_group.get_input(mod, _ops().node_group.SOLVER_INPUT)).ravel()
         assert np.isfinite(buf).all(), f"the offsets hold {int((~np.isfinite(buf)).sum())} non-finite values"
         assert np.isfinite(_evaluated_co(ob)).all()
         return

@@ -378,7 +378,7 @@ def test_subdivision_before_and_after_the_slot_still_keeps_the_volume(ext):
     assert any("faces that reach VP-FFD are not known yet" in w
                for w in _ops(ext).status.stats(ours)["warnings"]), _ops(ext).status.stats(ours)
     bpy.context.view_layer.update()
-    assert ext.module.operators.modifier.get_input(ours.modifiers["VP-FFD"], "Tap Faces") is True
+    assert ext.module.operators.node_group.get_input(ours.modifiers["VP-FFD"], "Tap Faces") is True
     scene = bpy.context.scene
     for f in (14, 7):
         scene.frame_set(f)

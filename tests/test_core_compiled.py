@@ -274,3 +274,21 @@ def test_what_is_made_on_first_use_is_made_from_the_positions_as_bound(kernels):
     weights[:] = 1.0
     np.testing.assert_array_equal(out.wuv, ref.wuv)
     np.testing.assert_array_equal(out.ww, ref.ww)
+
+
+@pytest.mark.parametrize("correct", [False, True])
+def test_a_frame_names_the_kernels_that_solved_it_and_use_compiled_off_keeps_numpy(kernels, correct):
+    """The pipeline's own solves (no solver of the caller's; the plain deformation) run where
+    `use_compiled` says: NumPy alone when it is off (the reference path), the compiled kernels
+    when it is on; the result says which (`FrameResult.backend`)."""
+    lat = vp.Lattice((4, 4, 4), bounds=((-1,) * 3, (1,) * 3))
+    v, t = vp.icosphere(3, 0.7)
+    P = lat.rest_points * [1.0, 1.0, 0.7]
+    ran = {}
+    for use_compiled in (False, True):
+        inputs = vp.FrameInputs(positions=v, tris=t, lattice=lat, points=P, matrix=np.eye(4),
+                                correct=correct, axes="XYZ" if correct else "", use_compiled=use_compiled)
+        result = vp.Pipeline().evaluate(inputs)
+        ran[use_compiled] = result.backend
+        assert (result.solution is not None) == correct
+    assert ran == {False: "NUMPY", True: "COMPILED"}

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import lattice_eval, parallel
+from . import backends, lattice_eval, parallel
 from .binder import bind
 from .cage import Cage
 from .outside import mode as outside_mode, outside_factor
@@ -44,7 +44,8 @@ class FrameInputs:
     cage_depth, cage_outside: for a `Cage`.
     dtype: the binding's float type.
     use_compiled: bind with the compiled kernels once they are loaded (bit for bit NumPy's
-        binding); False binds with NumPy, the reference. The solve's kernels are the solver's.
+        binding), and solve with them where no solver is given (`backends.choose`); False binds
+        and solves with NumPy, the reference. With a solver, the correction's kernels are its.
     outside, falloff: what a lattice does to positions outside its rest box (`outside.py`, the
         table of modes: "FOLLOW" as Blender's Lattice modifier, "FALLOFF" fading out over
         `falloff` lattice-size units, "STAY" not at all); a factor on the influence, from the
@@ -220,6 +221,9 @@ class Pipeline:
             positions, still = _keep_still(_affine(out, back), inp.positions, influence)
             return FrameResult(positions=positions, points=P_used, outside=outside, still=still)
         binding, rebound = self._embed(inp, verts, influence)
+        # Without a solver of the caller's, and for the plain deformation, the CPU solves: with
+        # NumPy alone when use_compiled is off (the reference path), else the registry's choice.
+        cpu_steps = backends.choose("CPU" if inp.use_compiled else "NUMPY", binding)[0].steps
         warnings = []
         solution = None
         reference, target_given = binding.rest_volume, False
@@ -239,7 +243,7 @@ class Pipeline:
                                     "volume on this frame")
             try:
                 solution = (self.solver(binding, P_used, options) if self.solver is not None
-                            else binding.solve(P_used, **options))
+                            else binding.solve(P_used, steps=cpu_steps, **options))
             except ValueError as exc:
                 # No correction is possible on this frame: it shows the plain deformation, as the
                 # Lattice modifier would, and says why; the next frame is solved afresh.
@@ -249,7 +253,7 @@ class Pipeline:
             warnings.extend(solution.warnings)
             backend = solution.backend
         else:
-            sol = binding.solve(P_used, axes="", preserve_volume=False)
+            sol = binding.solve(P_used, axes="", preserve_volume=False, steps=cpu_steps)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
             backend = sol.backend
         positions, still = _keep_still(_affine(out, back), inp.positions, influence)

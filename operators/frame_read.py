@@ -124,19 +124,28 @@ def _frame(obj, ob_eval, state, lat_ob, depsgraph, *, tap, mod, helper, stale_we
         correct = False
     target_volumes = _bind_target(s, helper, warnings)
     outside = s.outside if isinstance(lattice, vp.Lattice) else "FOLLOW"   # a cage has its own rule
-    inputs = vp.FrameInputs(
+    computed = dict(
         positions=X, tris=tris, lattice=lattice, points=points, matrix=L, weights=weights,
-        lattice_weights=lattice_weights, strength=s.strength, correct=correct, axes=axes,
-        directions=directions, volume_scale=s.volume_scale, mobility=mobility, pins=pin_targets,
-        islands=s.use_islands, cage_depth=s.cage_depth, cage_outside=s.cage_outside,
-        dtype=np.float32, use_compiled=s.backend != "NUMPY", outside=outside,
-        falloff=s.falloff_distance, target_volumes=target_volumes)
+        lattice_weights=lattice_weights, correct=correct, axes=axes, directions=directions,
+        mobility=mobility, pins=pin_targets, islands=s.use_islands, dtype=np.float32,
+        use_compiled=s.backend != "NUMPY", outside=outside, falloff=s.falloff_distance,
+        target_volumes=target_volumes)
+    inputs = vp.FrameInputs(**computed, **same_named_settings(s, computed))
     # Beside the core's inputs, what changes what is shown: where the solve runs, the fold
     # attribute, where the faces came from (the panel says it) and Edit Mode.
     signature = FrameKey(inputs, extra=(s.backend, s.use_fold_attribute, faces_from, editing))
     return Frame(helper=helper, inputs=inputs, signature=signature,
                   faces_from=faces_from, lattice_matrix=M_lat, warnings=warnings,
                   stale_weights=stale_weights, editing=editing)
+
+
+def same_named_settings(s, computed=()):
+    """{field: value} for every field of `vpffd_addon.FrameInputs` that is not in `computed` and
+    has a setting of the same name in `s` (obj.vpffd): such a setting reaches the core as it is,
+    with no line of its own here (docs/architecture.md, "A new setting")."""
+    names = s.bl_rna.properties.keys()
+    return {f.name: getattr(s, f.name) for f in dataclasses.fields(vp.FrameInputs)
+            if f.name not in computed and f.name in names}
 
 
 def _faces(state, obj, ob_eval, n, tapped, mod, may_write, editing=False):

@@ -215,6 +215,28 @@ def test_meshes_sharing_a_lattice_each_keep_their_volume(ext):
         assert abs(_volume(ob) / rest[ob.name] - 1) <= VOLUME_TOL
 
 
+def test_settings_named_as_frame_inputs_reach_the_core_as_they_are(ext):
+    """Every field of FrameInputs with a setting of its name is read from that setting (a new
+    setting so named needs no line in frame_read.py); the ones the Blender layer computes keep
+    their own values. Checked on the frame read for a bound mesh, after every such setting was
+    changed from its default."""
+    ops = _ops(ext)
+    ball, lat = _sphere(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    s = ball.vpffd
+    named = ops.frame_read.same_named_settings(s)
+    assert {"strength", "volume_scale", "cage_depth", "cage_outside"} <= set(named), named
+    s.strength, s.volume_scale, s.cage_depth, s.cage_outside = 0.7, 1.2, 2, "STAY"
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    state = ops.bound.states[ball.session_uid]
+    frame = ops.frame_read.read(ball, state, ops.modifier.find(ball), depsgraph, None)
+    assert (frame.inputs.strength, frame.inputs.volume_scale, frame.inputs.cage_depth,
+            frame.inputs.cage_outside) == (pytest.approx(0.7), pytest.approx(1.2), 2, "STAY")
+    # Computed by frame_read.py, not read as they are: the lattice (a model, not the object),
+    # the axes (World or lattice ones), Outside (a cage has its own).
+    assert isinstance(frame.inputs.lattice, ext.module.vpffd_addon.Lattice) and frame.inputs.axes == "XYZ"
+
+
 def test_volume_scale_is_animatable_and_world_axes_work(ext):
     ball = _sphere()
     lat = _lattice()

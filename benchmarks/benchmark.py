@@ -225,19 +225,19 @@ FRAME_SET_FRAMES = 12
 _EXTENSION = {}
 
 
-def _extension_engine():
+def _extension_status():
     """Install the built extension zip through Blender's own installer (once per process) and
-    return its engine module. BLENDER_USER_RESOURCES was isolated before bpy was imported."""
-    if "engine" not in _EXTENSION:
+    return its status module (`operators/status.py`). BLENDER_USER_RESOURCES was isolated before bpy was imported."""
+    if "status" not in _EXTENSION:
         import importlib
         import tempfile
         eh = _harness()
         zip_path = eh.build_extension_zip(_ROOT, tempfile.mkdtemp(prefix="vpffd-bench-zip-"))
         module = eh.install_extension(zip_path)
         _EXTENSION["module"] = module
-        _EXTENSION["engine"] = importlib.import_module(module + ".operators.engine")
+        _EXTENSION["status"] = importlib.import_module(module + ".operators.status")
     _harness().ensure_enabled(_EXTENSION["module"])  # read_factory_settings disables add-ons
-    return _EXTENSION["engine"]
+    return _EXTENSION["status"]
 
 
 def gpu_figures(sizes, repeat):
@@ -267,7 +267,7 @@ def extension_frame_set(verts, tris, points, frames=FRAME_SET_FRAMES):
     the first FRAME_SET_WARMUPS frames after frame 1 are stepped but not timed, in both scenes."""
     import bpy
 
-    engine = _extension_engine()
+    status = _extension_status()
     eh = _harness()
     out = {"frames": frames}
     for kind in ("plain", "vpffd"):
@@ -298,7 +298,7 @@ def extension_frame_set(verts, tris, points, frames=FRAME_SET_FRAMES):
             scene.frame_set(f)
             wall.append((time.perf_counter() - t0) * 1e3)
             if kind == "vpffd":
-                info = engine.stats(ob)
+                info = status.stats(ob)
                 if info.get("error"):
                     raise RuntimeError(info["error"])
                 update.append(info["seconds"] * 1e3)
@@ -308,8 +308,8 @@ def extension_frame_set(verts, tris, points, frames=FRAME_SET_FRAMES):
             out["vpffd_update_ms_median"] = statistics.median(update)
             out["vpffd_core_solve_ms_median"] = statistics.median(core)
             out["handler_overhead_ms_median"] = float(statistics.median(np.subtract(update, core)))
-            out["volume_percent_last"] = engine.stats(ob)["volume_percent"]
-            out["kernels"] = engine.stats(ob).get("kernels")
+            out["volume_percent_last"] = status.stats(ob)["volume_percent"]
+            out["kernels"] = status.stats(ob).get("kernels")
     out["frame_set_ratio"] = out["vpffd_frame_set_ms_median"] / out["plain_frame_set_ms_median"]
     eh.reset_scene()
     return out
@@ -703,7 +703,7 @@ def _emit(report, out):
 
 
 def _install_extension():
-    _extension_engine()
+    _extension_status()
     return _EXTENSION["module"]
 
 

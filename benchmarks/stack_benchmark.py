@@ -142,7 +142,7 @@ class _Phases:
         return {k: statistics.median(c) for k, c in zip(("first_evaluation", "handlers", "after_update"), cols)}
 
 
-def _frames(bpy, engine=None, ob=None):
+def _frames(bpy, status=None, ob=None):
     """(wall ms per frame, VP-FFD update ms per frame, phase medians) over the timed frames."""
     scene = bpy.context.scene
     scene.frame_set(1)
@@ -156,15 +156,15 @@ def _frames(bpy, engine=None, ob=None):
             t1 = time.perf_counter()
             wall.append((t1 - t0) * 1e3)
             phases.frame(t0, t1)
-            if engine is not None:
-                info = engine.stats(ob)
+            if status is not None:
+                info = status.stats(ob)
                 if info.get("error"):
                     raise RuntimeError(info["error"])
                 update.append(info["seconds"] * 1e3)
     return wall, update, phases.medians()
 
 
-def cage_figures(bpy, eh, engine, cage_module, verts, tris):
+def cage_figures(bpy, eh, status, cage_module, verts, tris):
     """The mesh moving through a static 20-cell box cage (depth 3): a cage binding is rebuilt on
     every frame. No Blender modifier to compare with: the Lattice modifier's scene is given for
     scale."""
@@ -190,28 +190,28 @@ def cage_figures(bpy, eh, engine, cage_module, verts, tris):
         t0 = time.perf_counter()
         scene.frame_set(f)
         wall.append((time.perf_counter() - t0) * 1e3)
-        info = engine.stats(ob)
+        info = status.stats(ob)
         if info.get("error"):
             raise RuntimeError(info["error"])
         update.append(info["seconds"] * 1e3)
     row = {"scenario": "mesh moves through a 20-cell cage (depth 3)", "vpffd_ms": _spread(wall),
-           "vpffd_update_ms": _spread(update), "volume_percent": engine.stats(ob)["volume_percent"]}
+           "vpffd_update_ms": _spread(update), "volume_percent": status.stats(ob)["volume_percent"]}
     log(f"  cage, mesh moves: {row['vpffd_ms']['median']:.0f} ms per frame")
     return row
 
 
-def frame_set_figures(bpy, eh, engine, verts, tris):
+def frame_set_figures(bpy, eh, status, verts, tris):
     rows = []
     for scenario in SCENARIOS:
         row = {"scenario": scenario}
         ob = _scene(bpy, eh, scenario, "lattice", verts, tris)
         row["lattice_modifier_ms"] = _spread(_frames(bpy)[0])
         ob = _scene(bpy, eh, scenario, "vpffd", verts, tris)
-        wall, update, phases = _frames(bpy, engine, ob)
+        wall, update, phases = _frames(bpy, status, ob)
         row["vpffd_ms"] = _spread(wall)
         row["vpffd_update_ms"] = _spread(update)
         row["vpffd_phases_ms"] = phases
-        row["volume_percent"] = engine.stats(ob)["volume_percent"]
+        row["volume_percent"] = status.stats(ob)["volume_percent"]
         if scenario == "armature":
             _scene(bpy, eh, scenario, "none", verts, tris)
             row["armature_only_ms"] = _spread(_frames(bpy)[0])
@@ -245,7 +245,7 @@ def median_rounds(rounds):
     return rows
 
 
-def bind_figures(bpy, eh, engine, handlers):
+def bind_figures(bpy, eh, status, handlers):
     out = {}
     lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
     compiled = vp.compiled.load()
@@ -291,7 +291,7 @@ def bind_figures(bpy, eh, engine, handlers):
         t2 = time.perf_counter()
         undo_step.append((t1 - t0) * 1e3)
         after_undo.append((t2 - t1) * 1e3)
-        rebound.append(bool(engine.stats(ob).get("rebound")))
+        rebound.append(bool(status.stats(ob).get("rebound")))
     out["undo_handler_ms"] = statistics.median(undo_step)
     out["first_frame_after_undo_ms"] = statistics.median(after_undo)
     out["ordinary_frame_ms"] = statistics.median(ordinary)
@@ -343,7 +343,8 @@ def run(engine_module_loader):
     import bpy
     from tests import extension_harness as eh
     module = engine_module_loader()
-    engine = importlib.import_module(module + ".operators.engine")
+    status = importlib.import_module(module + ".operators.status")
+    compiled_backend = importlib.import_module(module + ".operators.compiled_backend")
     handlers = importlib.import_module(module + ".operators.handlers")
     cage_module = importlib.import_module(module + ".operators.cage")
     verts, tris = vp.icosphere(SUBDIVISIONS, 0.45)
@@ -352,14 +353,14 @@ def run(engine_module_loader):
     alone_before = lattice_modifier_alone(bpy, eh, verts, tris)
     report = {"vertices": len(verts), "lattice": list(LATTICE), "frames": FRAMES,
               "warmups": FRAME_WARMUPS, "rounds": ROUNDS,
-              "frame_set": median_rounds([frame_set_figures(bpy, eh, engine, verts, tris)
+              "frame_set": median_rounds([frame_set_figures(bpy, eh, status, verts, tris)
                                           for _ in range(ROUNDS)]),
-              "cage": cage_figures(bpy, eh, engine, cage_module, verts, tris),
-              "bind": bind_figures(bpy, eh, engine, handlers),
+              "cage": cage_figures(bpy, eh, status, cage_module, verts, tris),
+              "bind": bind_figures(bpy, eh, status, handlers),
               "islands": island_figures()}
     report["lattice_modifier_alone"] = {"before": alone_before,
                                         "after": lattice_modifier_alone(bpy, eh, verts, tris),
-                                        "kernels": engine.compiled_backend.status()[0]}
+                                        "kernels": compiled_backend.status()[0]}
     eh.reset_scene()
     return report
 

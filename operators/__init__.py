@@ -5,10 +5,10 @@ calls it, and writes the result as offsets that the VP-FFD Geometry Nodes modifi
 """
 import bpy
 
-from . import (bake, cage, compiled_backend, demos, fit, gpu_backend, handlers, log, ops, overlay,
+from . import (bake_ops, cage, compiled_backend, demos, fit, gpu_backend, handlers, log, ops, overlay,
                panel, properties)
 
-classes = (properties.classes + ops.classes + bake.classes + panel.classes + demos.classes
+classes = (properties.classes + ops.classes + bake_ops.classes + panel.classes + demos.classes
            + cage.classes + fit.classes)
 
 _register_classes, _unregister_classes = bpy.utils.register_classes_factory(classes)
@@ -18,6 +18,7 @@ def register():
     log.install()
     _register_classes()
     properties.register()
+    gpu_backend.register()
     handlers.register()
     demos.register()
     cage.register()
@@ -27,7 +28,7 @@ def register():
 
 def unregister():
     compiled_backend.unregister()
-    gpu_backend.release()
+    gpu_backend.unregister()
     overlay.unregister()
     fit.unregister()
     cage.unregister()

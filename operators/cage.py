@@ -8,41 +8,12 @@ import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty, IntVectorProperty
 
 from .. import vpffd_addon as vp
+from ..vpffd_addon.cage_cells import decode_cells, encode_cells
+from ..vpffd_addon.wireframe import cage_edges
 from .meshio import matrix, mesh_coords, world_bounds
 from .text import report
 
 CELLS_PROPERTY = "vpffd_cells"
-
-
-def encode_cells(cells):
-    """Cells (tuples of face loops) -> flat ints [n_cells, n_faces, n, v..., n, v..., ...]."""
-    out = [len(cells)]
-    for faces in cells:
-        out.append(len(faces))
-        for f in faces:
-            out.append(len(f))
-            out.extend(int(v) for v in f)
-    return out
-
-
-def decode_cells(flat):
-    """Inverse of `encode_cells`; raises ValueError on a damaged list."""
-    flat = [int(x) for x in flat]
-    try:
-        cells, k = [], 1
-        for _ in range(flat[0]):
-            n_faces, k = flat[k], k + 1
-            faces = []
-            for _ in range(n_faces):
-                n, k = flat[k], k + 1
-                faces.append(tuple(flat[k:k + n]))
-                if len(faces[-1]) != n:
-                    raise IndexError
-                k += n
-            cells.append(tuple(faces))
-    except IndexError:
-        raise ValueError("the cage's cell list is damaged") from None
-    return cells
 
 
 def is_cage(obj):
@@ -58,12 +29,6 @@ def cage_cells(obj):
         raise ValueError(f"cage '{obj.name}' has {n} vertices but its cells use {used + 1}: its vertices "
                          "were deleted in Edit Mode; make the cage again")
     return cells
-
-
-def cage_edges(cells):
-    """(E, 2) distinct edges of the cells' faces."""
-    edges = {tuple(sorted((a, b))) for faces in cells for f in faces for a, b in zip(f, f[1:] + f[:1])}
-    return np.array(sorted(edges), np.int64).reshape(-1, 2)
 
 
 def new_cage_object(context, name, points, cells, matrix_world=None):

@@ -8,8 +8,9 @@ import bpy
 import numpy as np
 
 from .. import vpffd_addon as vp
-from . import cage, engine
+from . import cage
 from .text import report
+from .lifecycle import BindError, bind
 
 BALL_FRAMES = (1, 60)
 CUBE_FRAMES = (1, 60)
@@ -159,7 +160,7 @@ def _bind(ob, depsgraph, progress=None, **settings):
     indicator: binding is most of a demo's build time)."""
     for k, v in settings.items():
         setattr(ob.vpffd, k, v)
-    engine.bind(ob, depsgraph)
+    bind(ob, depsgraph)
     if progress is not None:
         progress()
 
@@ -487,7 +488,7 @@ class _DemoOperator:
         wm.progress_begin(0, self.binds)
         try:
             self.build(scene, scene.view_layers[0].depsgraph, progress=progress)
-        except (engine.BindError, ValueError) as exc:
+        except (BindError, ValueError) as exc:
             report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         finally:

@@ -5,9 +5,10 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty
 
-from . import engine, meshio
+from . import meshio
 from .cage import selected_meshes
 from .text import report
+from .lifecycle import BindError, bind
 
 try:
     from ..vpffd_addon import fit_lattice
@@ -37,8 +38,8 @@ def add_fitted_lattice(context, meshes, resolution=4, margin=0.05, axes="XYZ"):
         ob.vpffd.lattice = lat
         ob.vpffd.axes = axes
         try:
-            results[ob.name] = engine.bind(ob, context.evaluated_depsgraph_get())
-        except (engine.BindError, ValueError) as exc:
+            results[ob.name] = bind(ob, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
             results[ob.name] = str(exc)
     return lat, results
 

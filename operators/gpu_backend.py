@@ -35,10 +35,12 @@ import warnings
 import numpy as np
 
 try:
+    from ..vpffd_addon import backends as _vbackends
     from ..vpffd_addon import solve as _vsolve
     from ..vpffd_addon import steps as _vsteps
     from ..vpffd_addon.gpu_layout import gpu_layout
 except ImportError:  # loaded outside the extension package (tests, benchmarks)
+    from vpffd_addon import backends as _vbackends
     from vpffd_addon import solve as _vsolve
     from vpffd_addon import steps as _vsteps
     from vpffd_addon.gpu_layout import gpu_layout
@@ -348,6 +350,26 @@ def release():
     _kernel_cache.clear()
 
 
+def _accepts(preference, binding, options, fresh=False):
+    """The GPU entry's own rules (`choose`: the options and sizes it supports, Auto's)."""
+    return choose(preference, binding.n_verts, options, binding, fresh)
+
+
+def register():
+    """Register the GPU path in the core's registry of backends (`vpffd_addon/backends.py`):
+    lattice bindings, lattice axes, one volume row; it makes its solver per binding
+    (`GPUSolver`), so it lends no steps to the CPU's solve."""
+    _vbackends.register(_vbackends.Backend(
+        "GPU", "GPU", "GPU", frozenset({"lattice"}) | _GPUSteps.capabilities,
+        available=available, accepts=_accepts))
+
+
+def unregister():
+    """Take the GPU path out of the registry and drop its kernels (on the main thread)."""
+    _vbackends.unregister("GPU")
+    release()
+
+
 # ------------------------------------------------------------------------------------------------
 # Textures
 
@@ -510,6 +532,7 @@ class _GPUSteps(_vsteps.Steps):
     other than the lattice axes, one volume row (`capabilities`)."""
 
     capabilities = frozenset({"plain_measure"})
+    backend = "GPU"
     float32 = True
 
     def __init__(self, solver):

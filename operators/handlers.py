@@ -1,11 +1,13 @@
 """Application handlers, managed in one place. All are @persistent (they survive file loads) and
-none lets an exception reach Blender: `engine.update` records problems for the panel instead."""
+none lets an exception reach Blender: `update.update` records problems for the panel instead."""
 import logging
 
 import bpy
 from bpy.app.handlers import persistent
 
-from . import engine, modifier
+from . import modifier
+from .bound import forget, invalidate, relink_after_undo
+from .update import bound_objects, update_scene
 
 log = logging.getLogger(__name__)
 
@@ -18,7 +20,7 @@ def _guarded(scene, depsgraph):
         return
     _updating = True
     try:
-        engine.update_scene(scene, depsgraph)
+        update_scene(scene, depsgraph)
     except Exception as exc:  # never raise into Blender
         log.error("update failed: %s", exc)
     finally:
@@ -42,14 +44,14 @@ def on_depsgraph_update(scene: bpy.types.Scene, depsgraph: "bpy.types.Depsgraph 
 def on_load(*_args) -> None:
     """A loaded file brings bound objects but no cached bindings: drop stale ones, lock the
     interface during renders (handlers change data), and solve the current frame."""
-    engine.forget()
+    forget()
     try:
         for scene in bpy.data.scenes:
-            for ob in engine.bound_objects(scene):
+            for ob in bound_objects(scene):
                 # Files bound by older versions have an older node group and no solver helper.
                 if modifier.find(ob) is not None and ob.library is None:
                     modifier.ensure(ob)
-            if engine.bound_objects(scene):
+            if bound_objects(scene):
                 scene.render.use_lock_interface = True
         context = bpy.context
         if context.scene is not None:
@@ -64,12 +66,12 @@ def on_undo(*_args) -> None:
     figures: solve the restored state again, so that the panel describes what is shown. The
     pipelines' caches stay: their keys hold every input, so a binding is reused exactly when the
     restored inputs are the ones it was built from (no stall after an undo). A lattice that undo
-    brings back after Delete is linked again (`engine.relink_after_undo`)."""
-    engine.invalidate()
+    brings back after Delete is linked again (`bound.relink_after_undo`)."""
+    invalidate()
     try:
         for scene in bpy.data.scenes:
-            for ob in engine.bound_objects(scene):
-                engine.relink_after_undo(ob, bpy.data.objects)
+            for ob in bound_objects(scene):
+                relink_after_undo(ob, bpy.data.objects)
         context = bpy.context
         if context.scene is not None:
             _guarded(context.scene, context.evaluated_depsgraph_get())
@@ -96,4 +98,4 @@ def unregister():
     for handlers, fn in _HANDLERS:
         while fn in handlers:
             handlers.remove(fn)
-    engine.forget()
+    forget()

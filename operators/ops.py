@@ -1,8 +1,11 @@
-"""Operators: bind, unbind, apply, save as shape key, check folds. Thin wrappers over `engine`."""
+"""Operators: bind, unbind, apply, save as shape key, check folds. Thin wrappers over `lifecycle`, `release` and `update`."""
 import bpy
 
-from . import engine
 from .text import report
+from .lifecycle import BindError, apply, bind, save_shape_key
+from .release import unbind
+from .status import status
+from .update import check_folds
 
 
 class _ObjectOperator:
@@ -38,8 +41,8 @@ class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
     def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.object
         try:
-            warnings = engine.bind(ob, context.evaluated_depsgraph_get())
-        except (engine.BindError, ValueError) as exc:
+            warnings = bind(ob, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
             report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         for text in warnings:
@@ -54,7 +57,7 @@ class OBJECT_OT_vpffd_unbind(_BoundOperator, bpy.types.Operator):
     bl_label = "Unbind"
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        engine.unbind(context.object)
+        unbind(context.object)
         return {"FINISHED"}
 
 
@@ -65,8 +68,8 @@ class OBJECT_OT_vpffd_apply(_BoundOperator, bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         try:
-            engine.apply(context.object, context.evaluated_depsgraph_get())
-        except (engine.BindError, ValueError) as exc:
+            apply(context.object, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
             report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         return {"FINISHED"}
@@ -81,8 +84,8 @@ class OBJECT_OT_vpffd_save_shape_key(_BoundOperator, bpy.types.Operator):
     def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.object
         try:
-            name, before = engine.save_shape_key(ob, context.evaluated_depsgraph_get())
-        except (engine.BindError, ValueError) as exc:
+            name, before = save_shape_key(ob, context.evaluated_depsgraph_get())
+        except (BindError, ValueError) as exc:
             report(self, "ERROR", str(exc))
             return {"CANCELLED"}
         if before:
@@ -101,9 +104,9 @@ class OBJECT_OT_vpffd_check_folds(_BoundOperator, bpy.types.Operator):
 
     def execute(self, context: bpy.types.Context) -> set[str]:
         ob = context.object
-        n = engine.check_folds(ob, context.evaluated_depsgraph_get())
+        n = check_folds(ob, context.evaluated_depsgraph_get())
         if n is None:
-            report(self, "ERROR", f"{engine.status(ob).error}")
+            report(self, "ERROR", f"{status(ob).error}")
             return {"CANCELLED"}
         report(self, "WARNING" if n else "INFO", f"{n:,} inverted vertices")
         return {"FINISHED"}

@@ -10,7 +10,11 @@ import logging
 import bpy
 import numpy as np
 
-from . import engine
+from ..vpffd_addon import wireframe
+from .bound import states
+from .status import status
+from .text import percent
+from .update import bound_objects
 
 log = logging.getLogger(__name__)
 
@@ -26,11 +30,33 @@ def lines(points, edges):
     return np.asarray(points, float)[np.asarray(edges, np.int64)].reshape(-1, 3)
 
 
+def overlay_geometry(obj):
+    """(corrected lattice or cage points in world space (N, 3), edges (E, 2), label) of the last
+    solve, or None before the first one."""
+    state = states.get(obj.session_uid)
+    if state is None or getattr(state, "overlay", None) is None:
+        return None
+    info = status(obj)
+    if info.error or info.paused or info.switched_off:
+        return None     # the mesh shows no correction now: drawing the last one would be false
+    label = f"{percent(info.volume_percent)} volume" if info.volume_percent is not None else ""
+    return state.overlay + (label,)
+
+
+def falloff_geometry(obj):
+    """(corners in world space (8, 3), edges (12, 2)) of the box where the falloff of the last
+    solve ends, or None (no falloff, or nothing shown now)."""
+    state = states.get(obj.session_uid)
+    if overlay_geometry(obj) is None or getattr(state, "falloff_box", None) is None:
+        return None
+    return state.falloff_box, wireframe.BOX_EDGES
+
+
 def _visible(context):
     scene = context.scene
-    for ob in engine.bound_objects(scene):
+    for ob in bound_objects(scene):
         if ob.vpffd.show_overlay and ob.visible_get():
-            drawn = engine.overlay_geometry(ob)
+            drawn = overlay_geometry(ob)
             if drawn is not None:
                 yield ob, drawn
 
@@ -48,7 +74,7 @@ def _draw_lattices():
             shader.uniform_float("color", LATTICE_COLOUR)
             batch_for_shader(shader, "LINES", {"pos": lines(points, edges).astype(np.float32)}).draw(shader)
             batch_for_shader(shader, "POINTS", {"pos": points.astype(np.float32)}).draw(shader)
-            box = engine.falloff_geometry(ob)
+            box = falloff_geometry(ob)
             if box is not None:
                 shader.uniform_float("color", FALLOFF_COLOUR)
                 batch_for_shader(shader, "LINES", {"pos": lines(*box).astype(np.float32)}).draw(shader)

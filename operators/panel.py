@@ -3,9 +3,13 @@
 Bake and Status, with split properties and no animation decorators."""
 import bpy
 
-from . import bake, cage, compiled_backend, engine, modifier
+from . import bake_ops, cage, compiled_backend, modifier
+from .cache_modifier import using_cache
+from ..vpffd_addon import outside as outside_modes
 from .status_line import applied_lattice, headline, status_lines
 from .text import count, lines, percent, sentence
+from .saved_data import JACOBIAN_ATTRIBUTE
+from .status import outside_message, status
 
 
 def _settings(context):
@@ -19,6 +23,17 @@ def message(layout, context, text, icon="NONE"):
     col = layout.column(align=True)
     for k, line in enumerate(lines(sentence(text), width - 4)):
         col.label(text=line, icon=icon if k == 0 else "BLANK1")
+
+
+def outside_row(layout, s, prop, kind):
+    """The Outside setting `prop` as one button per mode of the table (`vpffd_addon.outside`):
+    the earlier names the setting still accepts are not offered."""
+    split = layout.split(factor=0.4, align=True)
+    split.alignment = "RIGHT"
+    split.label(text="Outside")
+    row = split.row(align=True)
+    for m in outside_modes.modes(kind):
+        row.prop_enum(s, prop, m.name)
 
 
 class _Panel:
@@ -63,7 +78,7 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
             return
         s = ob.vpffd
         # First line: what VP-FFD does to this object now (details in the Status sub-panel).
-        text, icon = headline(engine.status(ob), s.is_bound, s.is_bound and bake.using_cache(ob),
+        text, icon = headline(status(ob), s.is_bound, s.is_bound and using_cache(ob),
                               applied_lattice(s), compiled_backend.status()[0])
         message(layout, context, text, icon=icon)
         col = layout.column()
@@ -72,7 +87,7 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
         row.prop_search(s, "vertex_group", ob, "vertex_groups", text="Vertex Group")
         row.prop(s, "invert_vertex_group", text="", icon="ARROW_LEFTRIGHT")
         col.prop(s, "strength", slider=True)
-        if s.is_bound and modifier.find(ob) is not None and not bake.using_cache(ob):
+        if s.is_bound and modifier.find(ob) is not None and not using_cache(ob):
             col.prop(s, "enabled")     # on the cache, "Use Live Solve" switches back instead
 
         row = layout.row(align=True)
@@ -108,13 +123,13 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
         s = context.object.vpffd
         col = self.draw_split().column()
         col.prop(s, "cage_depth")
-        col.prop(s, "cage_outside")
-        if s.outside == "FALLOFF":
+        outside_row(col, s, "cage_outside", "cage")
+        if "cage" not in outside_modes.mode(s.outside).kinds:
             message(col, context, "Outside: Falloff is for lattices (a cage's region is not a box): "
                                   "this cage's own Outside applies", icon="INFO")
-        info = engine.status(context.object)
+        info = status(context.object)
         if s.is_bound and info.outside:
-            message(col, context, engine.outside_message(info, True), icon="INFO")
+            message(col, context, outside_message(info, True), icon="INFO")
 
 
 class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
@@ -129,13 +144,13 @@ class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
         ob = context.object
         s = ob.vpffd
         col = self.draw_split().column()
-        col.prop(s, "outside")
+        outside_row(col, s, "outside", "lattice")
         sub = col.column()
-        sub.active = s.outside == "FALLOFF"
+        sub.active = outside_modes.mode(s.outside).has_distance
         sub.prop(s, "falloff_distance")
-        info = engine.status(ob)
+        info = status(ob)
         if s.is_bound and info.outside:
-            message(col, context, engine.outside_message(info, False), icon="INFO")
+            message(col, context, outside_message(info, False), icon="INFO")
 
 
 class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
@@ -152,7 +167,7 @@ class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
         sub.prop(s, "volume_scale")
         sub.prop(s, "target")
         if s.target == "BIND" and s.is_bound:
-            info = engine.status(ob)
+            info = status(ob)
             if info.input_percent is not None:
                 message(sub, context, f"what reaches VP-FFD has {percent(info.input_percent)} of "
                                       "the volume at Bind", icon="INFO")
@@ -192,9 +207,9 @@ class OBJECT_PT_vpffd_folds(_BoundSubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.draw_split()
-        info = engine.status(context.object)
+        info = status(context.object)
         if context.object.vpffd.use_fold_attribute:
-            message(layout, context, f"the attribute '{engine.JACOBIAN_ATTRIBUTE}' holds the "
+            message(layout, context, f"the attribute '{JACOBIAN_ATTRIBUTE}' holds the "
                                      "Jacobian determinant of every vertex")
         if info.folds is not None and not (info.error or info.paused or info.switched_off):
             message(layout, context, f"{count(info.folds)} inverted vertices" if info.folds
@@ -220,7 +235,7 @@ class OBJECT_PT_vpffd_bake(_BoundSubPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context: bpy.types.Context) -> None:
-        bake.draw_bake(self.draw_split(), context.object)
+        bake_ops.draw_bake(self.draw_split(), context.object)
 
 
 class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
@@ -228,7 +243,7 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
-        for text, icon in status_lines(engine.status(ob), bake.using_cache(ob), ob.vpffd.backend):
+        for text, icon in status_lines(status(ob), using_cache(ob), ob.vpffd.backend):
             message(self.layout, context, text, icon=icon)
 
 classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction,

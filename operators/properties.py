@@ -4,6 +4,7 @@ from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorPro
                        IntProperty, PointerProperty, StringProperty)
 
 from . import modifier
+from ..vpffd_addon import outside as outside_modes
 
 AXES_ITEMS = [
     ("XYZ", "XYZ", "Correct along all three axes"),
@@ -46,9 +47,9 @@ def _redraw(self, context):
 
 
 def _settings_changed(self, context):
-    from . import engine
+    from .update import request_update
     modifier.sync_inputs(self.id_data)
-    engine.request_update(self.id_data)
+    request_update(self.id_data)
 
 
 def _lattice_changed(self, context):
@@ -66,19 +67,10 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Refinement levels of a cage: each halves its cells, so the deformation comes "
                     "closer to the smooth limit; binding time and memory grow about 8x per level")
     cage_outside: EnumProperty(
-        name="Outside", default="FOLLOW", update=_settings_changed,
-        items=[("FOLLOW", "Follow", "Vertices outside the cage's region move with the closest point "
-                                    "of its boundary"),
-               ("STAY", "Stay", "Vertices outside the cage's region do not move")],
+        name="Outside", default="FOLLOW", update=_settings_changed, items=outside_modes.enum_items("cage"),
         description="What vertices outside a cage's region do")
     outside: EnumProperty(
-        name="Outside", default="FOLLOW", update=_settings_changed,
-        items=[("FOLLOW", "Follow", "Vertices outside the lattice follow its boundary, as with "
-                                    "Blender's Lattice modifier"),
-               ("FALLOFF", "Falloff", "The deformation fades out smoothly outside the lattice, over "
-                                      "Falloff Distance, with no seam at the lattice's faces; the "
-                                      "volume is still kept"),
-               ("INSIDE", "Inside Only", "Vertices outside the lattice do not move")],
+        name="Outside", default="FOLLOW", update=_settings_changed, items=outside_modes.enum_items("lattice"),
         description="What the lattice does to the vertices outside its box")
     falloff_distance: FloatProperty(
         name="Falloff Distance", default=0.5, min=0.001, soft_max=2.0, update=_settings_changed,

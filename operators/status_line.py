@@ -8,7 +8,7 @@ LIVE_SOLVE_PATH = "Bake > Use Live Solve"
 
 
 def reference_words(info):
-    """What the volume figures of `info` (an `engine.Status`) are percentages of, in words."""
+    """What the volume figures of `info` (an `status.Status`) are percentages of, in words."""
     if info.target_from == "bind":
         return "its volume at Bind"
     return "the mesh as edited" if info.editing else "its input"
@@ -31,7 +31,7 @@ def applied_lattice(settings):
 
 
 def headline(info, bound, using_cache, applied=None, kernels="ready"):
-    """(text, icon name) for an object with `engine.Status` `info`; `bound`: whether it is bound;
+    """(text, icon name) for an object with `status.Status` `info`; `bound`: whether it is bound;
     `using_cache`: whether a baked cache plays instead of the live solve; `applied`: the
     `applied_lattice` of an unbound mesh; `kernels`: the compiled kernels' state
     (`compiled_backend.status()[0]`)."""
@@ -68,7 +68,7 @@ def headline(info, bound, using_cache, applied=None, kernels="ready"):
 
 
 def status_lines(info, using_cache, backend):
-    """[(text, icon name)] of the Status sub-panel for `engine.Status` `info`; `using_cache`:
+    """[(text, icon name)] of the Status sub-panel for `status.Status` `info`; `using_cache`:
     whether a baked cache plays; `backend`: the Backend setting. Every warning the first line
     counts is listed once, with the ERROR icon; nothing else has that icon."""
     if using_cache:

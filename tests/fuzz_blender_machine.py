@@ -16,7 +16,7 @@ import vpffd_addon as core  # repository copy: only to build meshes
 from . import extension_harness as eh
 from .fuzz_blender_scene import (AXES, COUNTS, FAILED_REBIND, FLUX_REL, INTERP, KIND, MID, OID,
                                  ORIG, SHARED, TARGET_REL, UNEXPECTED, VOLUME_REL, WATCHDOG,
-                                 _HOOKED, _Tee, _clear_flags, _closed, _co, _engine, _evaluated_co,
+                                 _HOOKED, _Tee, _clear_flags, _closed, _co, _ops, _evaluated_co,
                                  _exception_from_operator, _known, _lattice_co, _lattice_object,
                                  _link, _matrix, _mesh_object, _modifier, _new_id, _norm, _note,
                                  _op, _pick, _remember, _set_co, _tagged, _tris, _volume,
@@ -63,7 +63,7 @@ class BlenderFuzz(RuleBasedStateMachine):
     def __init__(self):
         super().__init__()
         eh.reset_scene()
-        _engine().forget()
+        _ops().bound.forget()
         COUNTS["sequences"] += 1
         self.tmp = tempfile.mkdtemp(prefix="vpffd-fuzz-")
         self.expected = {}          # mesh id -> expected coordinates (float32 bytes)
@@ -505,16 +505,16 @@ class BlenderFuzz(RuleBasedStateMachine):
         if ob is None:
             return
         import bmesh
-        eng = _engine()
+        ops = _ops()
         with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
             bpy.context.view_layer.objects.active = ob
             bpy.ops.object.mode_set(mode="EDIT")
             try:
                 bpy.context.scene.frame_set(frame)
-                if ob.vpffd.is_bound and eng.stats(ob).get("error") is None and ob.vpffd.lattice:
+                if ob.vpffd.is_bound and ops.status.stats(ob).get("error") is None and ob.vpffd.lattice:
                     mod = _modifier().find(ob)
                     if mod is not None and mod.show_viewport:
-                        info = eng.stats(ob)
+                        info = ops.status.stats(ob)
                         # Solved live from the mesh as edited (entering changes no shape).
                         assert info.get("editing") and "volume_percent" in info, info
                 if move:
@@ -603,16 +603,16 @@ class BlenderFuzz(RuleBasedStateMachine):
         """What the mesh shows and the panel says after undo must be what solving the restored
         inputs from scratch gives. (Known bug stale-after-undo: counted, then the cache is
         dropped so that the rest of the sequence is checked from a consistent state.)"""
-        eng = _engine()
+        ops = _ops()
         scene = bpy.context.scene
         scene.frame_set(scene.frame_current)
         for ob in _tagged("mesh"):
             if not ob.vpffd.is_bound or ob.data.users > 1:
                 continue
-            shown, error = _evaluated_co(ob), eng.stats(ob).get("error")
-            eng.forget(ob)
+            shown, error = _evaluated_co(ob), ops.status.stats(ob).get("error")
+            ops.bound.forget(ob)
             scene.frame_set(scene.frame_current)
-            again, error2 = _evaluated_co(ob), eng.stats(ob).get("error")
+            again, error2 = _evaluated_co(ob), ops.status.stats(ob).get("error")
             scale = max(1.0, float(np.abs(again).max(initial=0)))
             err = float(np.abs(shown - again).max(initial=0)) if len(shown) == len(again) else np.inf
             if err > 1e-5 * scale or (error or None) != (error2 or None):
@@ -629,7 +629,7 @@ class BlenderFuzz(RuleBasedStateMachine):
         if result == "EXCEPTION":
             _exception_from_operator(ob, "vpffd_check_folds", error)
         if result == {"FINISHED"}:
-            folds = _engine().stats(ob).get("folds")
+            folds = _ops().status.stats(ob).get("folds")
             assert isinstance(folds, int) and 0 <= folds <= len(ob.data.vertices)
 
     @rule(i=INDEX)
@@ -639,18 +639,18 @@ class BlenderFuzz(RuleBasedStateMachine):
         self._step("fresh_recompute")
         if ob is None or not ob.vpffd.is_bound or ob.data.users > 1 or ob.data.get(SHARED):
             return
-        eng = _engine()
+        ops = _ops()
         scene = bpy.context.scene
         scene.frame_set(scene.frame_current)
-        if eng.stats(ob).get("error"):
+        if ops.status.stats(ob).get("error"):
             return
         shown = _evaluated_co(ob).reshape(-1, 3).astype(np.float64)
         stale = _stale_inputs(ob)
-        eng.forget(ob)
+        ops.bound.forget(ob)
         scene.frame_set(scene.frame_current)
-        if eng.stats(ob).get("error"):
+        if ops.status.stats(ob).get("error"):
             raise AssertionError(f"solving from scratch fails where the cached solve did not: "
-                                 f"{eng.stats(ob)['error']}")
+                                 f"{ops.status.stats(ob)['error']}")
         again = _evaluated_co(ob).reshape(-1, 3).astype(np.float64)
         scale = max(1.0, float(np.abs(again).max()))
         err = float(np.abs(shown - again).max()) if len(again) else 0.0
@@ -673,7 +673,7 @@ class BlenderFuzz(RuleBasedStateMachine):
         COUNTS["checks"] += 1
         scene = bpy.context.scene
         scene.frame_set(scene.frame_current)        # let the handlers settle what the step changed
-        eng = _engine()
+        ops = _ops()
         text = "".join(self.output)
         assert not self.hooked, f"an exception reached Blender (a handler raised): {self.hooked}"
         for bad in ("Traceback", "VP-FFD: update failed", "VP-FFD: after loading"):
@@ -683,9 +683,9 @@ class BlenderFuzz(RuleBasedStateMachine):
         meshes = _tagged("mesh")
         assert {ob.data[MID] for ob in meshes} <= set(self.expected)
         for ob in meshes:
-            self._check_mesh(ob, dg, eng)
+            self._check_mesh(ob, dg, ops)
 
-    def _check_mesh(self, ob, dg, eng):
+    def _check_mesh(self, ob, dg, ops):
         me = ob.data
         co = _co(me)
         expected = self.expected[me[MID]]
@@ -708,7 +708,7 @@ class BlenderFuzz(RuleBasedStateMachine):
 
         s = ob.vpffd
         mod = _modifier().find(ob)
-        info = eng.stats(ob)
+        info = ops.status.stats(ob)
         error = info.get("error")
         if error:
             COUNTS["reported_errors"][_norm(error)] += 1
@@ -802,7 +802,7 @@ def _stale_inputs(ob):
     """The cached solve used inputs that the current settings no longer give (the known
     stale-signature bug): another interpolation, or an inverted vertex group (whose influence
     depends on whether a group is set)."""
-    state = _engine()._cache.get(ob.session_uid)
+    state = _ops().bound.states.get(ob.session_uid)
     binding = getattr(state, "binding", None)
     lat = ob.vpffd.lattice
     if binding is None or lat is None or lat.type != "LATTICE":
@@ -813,7 +813,7 @@ def _stale_inputs(ob):
 
 def _flung(ob, dg):
     """How far the last solve moved the lattice points, in lattice sizes (None if unknown)."""
-    state = _engine()._cache.get(ob.session_uid)
+    state = _ops().bound.states.get(ob.session_uid)
     points = getattr(state, "points", None)
     if points is None or ob.vpffd.lattice is None:
         return None

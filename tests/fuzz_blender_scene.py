@@ -71,8 +71,8 @@ def _report_path():
     return os.environ.get("VPFFD_FUZZ_REPORT", default)
 
 
-def _engine():
-    return _EXT.module.operators.engine
+def _ops():
+    return _EXT.module.operators
 
 
 def _modifier():

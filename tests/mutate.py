@@ -26,7 +26,7 @@ MUTATIONS = {
         "        self.targets = targets * (1 + 5e-5)         # (k,)",
         ["-m", "core", "tests/test_core_reference.py", "tests/test_core_properties.py"], {}),
     "apply-raises": (
-        "operators/engine.py",
+        "operators/lifecycle.py",
         '    shape keys."""\n    mesh = obj.data\n',
         '    shape keys."""\n    raise RuntimeError("mutation: Apply is broken")\n',
         ["tests/test_regressions_blender.py", "tests/test_extension_blender.py"], {}),
@@ -36,7 +36,7 @@ MUTATIONS = {
         "int global_index() { this is not GLSL; return",
         ["tests/test_gpu_backend.py"], {}),
     "bake-esc-ignored": (
-        "operators/bake.py",
+        "operators/bake_ops.py",
         '        if event.type == "ESC" and event.value == "PRESS":',
         '        if event.type == "NONE_SUCH" and event.value == "PRESS":',
         ["tests/e2e/test_gui_window.py"], {"VPFFD_NO_E2E": ""}),
@@ -81,18 +81,18 @@ MUTATIONS = {
         "                if k > 0 and out[k] == out[k - 1]:",
         ["tests/test_core_compiled.py", "-k", "topology"], {}),
     "target-bind-from-result": (
-        "operators/engine.py",
+        "operators/lifecycle.py",
         "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / ",
         "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes * abs(state.result.volume / b.rest_volume) / ",
         ["tests/test_outside_target_blender.py", "-k", "volume_scale"], {}),
     "bind-island-volumes-order": (
-        "operators/engine.py",
+        "operators/lifecycle.py",
         "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / ",
         "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes[::-1] / ",
         ["tests/test_outside_target_blender.py", "-k", "gives_back"], {}),
     "undo-relink-noop": (
         "operators/handlers.py",
-        "                engine.relink_after_undo(ob, bpy.data.objects)",
+        "                relink_after_undo(ob, bpy.data.objects)",
         "                pass",
         ["tests/test_lifecycle_blender.py", "-k", "undo"], {}),
     "fit-margin-ignored": (
@@ -111,12 +111,12 @@ MUTATIONS = {
         "add_fitted_lattice(context, meshes, self.resolution, self.margin)",
         ["tests/test_fit_blender.py", "-k", "every_option"], {}),
     "panel-percent-from-target": (
-        "operators/engine.py",
+        "operators/publish.py",
         'info["volume_percent"] = 100.0 * abs(result.volume / reference)',
         'info["volume_percent"] = 100.0 * s.volume_scale',
         ["tests/test_panel_blender.py", "-k", "measured or refused"], {}),
     "mirror-counted-as-fold": (
-        "operators/engine.py",
+        "operators/publish.py",
         "state.orientation = mirrored, -1.0 if mirrored else 1.0",
         "state.orientation = mirrored, 1.0",
         ["tests/test_panel_blender.py", "-k", "mirror"], {}),
@@ -126,23 +126,23 @@ MUTATIONS = {
         "    warned = list(info.warnings)\n    if info.volume_percent is not None:\n        text",
         ["tests/test_panel_blender.py"], {}),
     "single-point-only-at-bind": (
-        "operators/engine.py",
+        "operators/publish.py",
         "    if isinstance(lattice, vp.Lattice) and 1 in lattice.shape:",
         "    if False:",
         ["tests/test_panel_blender.py", "-k", "single_point"], {}),
     "falloff-counts-face-vertices": (
-        "operators/engine.py",
+        "operators/publish.py",
         "    return max(result.outside - result.beyond, 0)",
         "    return result.falloff",
         ["tests/test_panel_blender.py", "-k", "falloff"], {}),
     "open-mesh-aims-at-zero": (
-        "operators/engine.py",
+        "operators/update.py",
         "    state.encloses_nothing = inputs.correct and encloses_nothing(result)",
         "    state.encloses_nothing = False",
         ["tests/test_panel_blender.py", "-k", "open_mesh"], {}),
     "apply-forgets-the-lattice": (
-        "operators/engine.py",
-        "    unbind(obj)\n    _note_applied(obj)",
+        "operators/lifecycle.py",
+        "    unbind(obj)\n    note_applied(obj)",
         "    unbind(obj)",
         ["tests/test_panel_blender.py", "-k", "after_apply"], {}),
     "fit-poll-silent": (

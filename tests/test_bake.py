@@ -113,11 +113,11 @@ def _vp_modifier(ob):
 
 @pytest.fixture(scope="module")
 def bake_module(vpffd):
-    """operators/bake.py of the installed extension, its operators registered (by the
-    extension itself once it wires them in; else here, for this module only)."""
+    """operators/bake.py of the installed extension, the operators of bake_ops.py registered (by
+    the extension itself once it wires them in; else here, for this module only)."""
     mod = importlib.import_module(vpffd.module_name + ".operators.bake")
     registered = []
-    for cls in mod.classes:
+    for cls in importlib.import_module(vpffd.module_name + ".operators.bake_ops").classes:
         if not hasattr(bpy.types, cls.__name__):
             bpy.utils.register_class(cls)
             registered.append(cls)
@@ -125,6 +125,11 @@ def bake_module(vpffd):
     for cls in reversed(registered):
         if hasattr(bpy.types, cls.__name__):
             bpy.utils.unregister_class(cls)
+
+
+def ops_of(bake_module):
+    """The extension's operators package (the bake module's own package)."""
+    return sys.modules[bake_module.__package__]
 
 
 @pytest.fixture
@@ -153,7 +158,7 @@ def test_pc2_frames_equal_the_live_result_exactly(bk, tmp_path):
     assert (result.frame_start, result.frame_end, result.n_verts) == (FIRST, LAST, len(rest))
     assert calls == [(i, len(FRAMES)) for i in range(1, len(FRAMES) + 1)]
     assert scene.frame_current == 4, "the scene's frame is restored"
-    assert _vp_modifier(ball).show_viewport and bk.find_cache(ball) is None
+    assert _vp_modifier(ball).show_viewport and ops_of(bk).cache_modifier.find_cache(ball) is None
 
     frames, start, rate = pcache.read_pc2(path)
     assert frames.dtype == np.float32 and frames.shape == live.shape
@@ -195,31 +200,31 @@ def test_switch_to_cache_plays_the_bake_through_the_mesh_cache_modifier(bk, tmp_
     bk.bake(ball, bpy.context.scene, path, FIRST, LAST, fmt=fmt, switch=True)
 
     vp = _vp_modifier(ball)
-    cache = bk.find_cache(ball)
+    cache = ops_of(bk).cache_modifier.find_cache(ball)
     assert [m.type for m in ball.modifiers] == ["MESH_CACHE", "NODES", "SUBSURF"]
     assert not vp.show_viewport and not vp.show_render, "VP-FFD is disabled, not removed"
     assert cache.show_viewport and cache.show_render and cache.cache_format == fmt
     assert (cache.play_mode, cache.time_mode, cache.frame_start, cache.frame_scale) == (
         "SCENE", "FRAME", float(FIRST), 1.0)
-    assert bk.using_cache(ball) and not ball.vpffd.enabled
+    assert ops_of(bk).cache_modifier.using_cache(ball) and not ball.vpffd.enabled
 
     cached = _live(ball)
     np.testing.assert_array_equal(cached, live)
     # Outside the baked range the modifier holds the first and last frames.
     np.testing.assert_array_equal(_live(ball, [FIRST - 3, LAST + 2]), live[[0, -1]])
 
-    bk.switch_to_live(ball)
+    ops_of(bk).cache_switch.switch_to_live(ball)
     assert vp.show_viewport and vp.show_render and not cache.show_viewport
-    assert bk.find_cache(ball) is not None and not bk.using_cache(ball)
+    assert ops_of(bk).cache_modifier.find_cache(ball) is not None and not ops_of(bk).cache_modifier.using_cache(ball)
     np.testing.assert_array_equal(_live(ball), live)
 
     # "Use Baked Cache" with no arguments uses the cache modifier's own settings.
     with bpy.context.temp_override(object=ball, active_object=ball):
         assert bpy.ops.object.vpffd_use_cache() == {"FINISHED"}
-        assert bk.using_cache(ball) and not vp.show_viewport
+        assert ops_of(bk).cache_modifier.using_cache(ball) and not vp.show_viewport
         np.testing.assert_array_equal(_live(ball), live)
         assert bpy.ops.object.vpffd_use_live() == {"FINISHED"}
-    assert not bk.using_cache(ball)
+    assert not ops_of(bk).cache_modifier.using_cache(ball)
 
 
 def test_time_stretching_still_maps_each_frame_to_its_bake(bk, tmp_path):
@@ -228,7 +233,7 @@ def test_time_stretching_still_maps_each_frame_to_its_bake(bk, tmp_path):
     scene.render.frame_map_old, scene.render.frame_map_new = 100, 150   # scene time = 2/3 frame
     live = _live(ball)
     bk.bake(ball, scene, str(tmp_path / "s.pc2"), FIRST, LAST, switch=True)
-    assert bk.find_cache(ball).frame_scale == 1.5
+    assert ops_of(bk).cache_modifier.find_cache(ball).frame_scale == 1.5
     np.testing.assert_array_equal(_live(ball), live)
 
 
@@ -237,11 +242,11 @@ def test_rebake_while_on_the_cache_bakes_the_live_solve(bk, tmp_path):
     path = str(tmp_path / "ball.pc2")
     bk.bake(ball, bpy.context.scene, path, FIRST, LAST, switch=True)
     ball.vpffd.volume_scale = 1.2          # change the live result while the cache plays
-    bk.switch_to_live(ball)
+    ops_of(bk).cache_switch.switch_to_live(ball)
     live = _live(ball)
-    bk.switch_to_cache(ball, path, "PC2", FIRST)
+    ops_of(bk).cache_switch.switch_to_cache(ball, path, "PC2", FIRST)
     bk.bake(ball, bpy.context.scene, path, FIRST, LAST)
-    assert bk.using_cache(ball) and not _vp_modifier(ball).show_viewport, "state restored"
+    assert ops_of(bk).cache_modifier.using_cache(ball) and not _vp_modifier(ball).show_viewport, "state restored"
     frames, _, _ = pcache.read_pc2(path)
     np.testing.assert_array_equal(frames, live)
     np.testing.assert_array_equal(_live(ball), live)
@@ -278,7 +283,7 @@ def test_bad_paths_are_refused(bk, tmp_path):
     assert bpy.data.filepath == ""
 
     def refused(filepath, match, fmt="PC2", **kw):
-        with pytest.raises(bk.BakeError, match=match):
+        with pytest.raises(ops_of(bk).bake_files.BakeError, match=match):
             bk.bake(ball, scene, filepath, FIRST, 2, fmt=fmt, **kw)
 
     refused("//ball.pc2", "not saved")                        # relative to an unsaved file
@@ -297,7 +302,7 @@ def test_bad_paths_are_refused(bk, tmp_path):
     assert not (tmp_path / "missing").exists()
     refused(str(tmp_path / "a" / "b" / "ball.pc2"), "does not exist", make_folder=True)
     assert not (tmp_path / "a").exists(), "only the file's own folder may be created"
-    with pytest.raises(bk.BakeError, match="before the start"):
+    with pytest.raises(ops_of(bk).bake_files.BakeError, match="before the start"):
         bk.bake(ball, scene, str(tmp_path / "x.pc2"), 5, 4)
     assert sorted(os.listdir(tmp_path)) == ["folder.pc2", "notes.pc2"]
 
@@ -322,7 +327,7 @@ def test_bad_paths_are_refused(bk, tmp_path):
     path = tmp_path / "y.pc2"
     bk.bake(ball, scene, str(path), FIRST, 2)
     scene.frame_set(2)
-    live = bk.engine.slot_output(ball)
+    live = ops_of(bk).update.slot_output(ball)
     np.testing.assert_array_equal(pcache.read_pc2(path)[0][-1], live)
     assert not np.array_equal(live, np.array([v.co for v in ball.data.vertices], np.float32))
 
@@ -331,11 +336,11 @@ def test_switch_refuses_a_cache_that_does_not_fit(bk, tmp_path):
     ball, _ = _rig()
     other = tmp_path / "other.pc2"
     pcache.write_pc2(str(other), np.zeros((2, 5, 3)))
-    with pytest.raises(bk.BakeError, match="5 points"):
-        bk.switch_to_cache(ball, str(other), "PC2", 1)
-    with pytest.raises(bk.BakeError, match="does not exist"):
-        bk.switch_to_cache(ball, str(tmp_path / "none.pc2"), "PC2", 1)
-    assert bk.find_cache(ball) is None and _vp_modifier(ball).show_viewport
+    with pytest.raises(ops_of(bk).bake_files.BakeError, match="5 points"):
+        ops_of(bk).cache_switch.switch_to_cache(ball, str(other), "PC2", 1)
+    with pytest.raises(ops_of(bk).bake_files.BakeError, match="does not exist"):
+        ops_of(bk).cache_switch.switch_to_cache(ball, str(tmp_path / "none.pc2"), "PC2", 1)
+    assert ops_of(bk).cache_modifier.find_cache(ball) is None and _vp_modifier(ball).show_viewport
 
 
 def test_operator_bakes_and_switches(bk, tmp_path):
@@ -345,7 +350,7 @@ def test_operator_bakes_and_switches(bk, tmp_path):
         assert bpy.ops.object.vpffd_bake(filepath=str(tmp_path / "op.mdd"), format="MDD",
                                          frame_start=2, frame_end=5) == {"FINISHED"}
     np.testing.assert_array_equal(pcache.read_mdd(tmp_path / "op.mdd")[0], live)
-    assert bk.using_cache(ball) and bk.find_cache(ball).cache_format == "MDD"
+    assert ops_of(bk).cache_modifier.using_cache(ball) and ops_of(bk).cache_modifier.find_cache(ball).cache_format == "MDD"
     np.testing.assert_array_equal(_live(ball, range(2, 6)), live)
 
 
@@ -363,7 +368,7 @@ def test_operator_on_an_unsaved_file_bakes_into_the_temporary_folder(bk, tmp_pat
         prefs.temporary_directory = before
     path = tmp_path / "vpffd_Ball.pc2"
     np.testing.assert_array_equal(pcache.read_pc2(path)[0], live)
-    assert bk.find_cache(ball).filepath == str(path)
+    assert ops_of(bk).cache_modifier.find_cache(ball).filepath == str(path)
 
 
 _FRESH_SCRIPT = textwrap.dedent("""
@@ -410,7 +415,7 @@ def test_saved_file_reproduces_the_frames_without_the_extension(bk, tmp_path):
         # A path relative to the .blend: the file and its cache move to the farm together.
         assert bpy.ops.object.vpffd_bake(filepath="//cache/squash.pc2", make_folder=True,
                                          frame_start=FIRST, frame_end=LAST) == {"FINISHED"}
-    assert bk.find_cache(ball).filepath == "//cache/squash.pc2"
+    assert ops_of(bk).cache_modifier.find_cache(ball).filepath == "//cache/squash.pc2"
     bpy.ops.wm.save_mainfile()
 
     farm = tmp_path / "farm"                       # the file and its cache, moved elsewhere
@@ -463,7 +468,7 @@ class _Recorder:
 
 def _modal_operator(bk, baker, filepath, use_switch):
     from types import SimpleNamespace
-    op_cls = bk.OBJECT_OT_vpffd_bake
+    op_cls = ops_of(bk).bake_ops.OBJECT_OT_vpffd_bake
     reports = []
     op = SimpleNamespace(_baker=baker, _timer=object(), filepath=filepath, use_switch=use_switch,
                          report=lambda kind, text: reports.append((set(kind), text)))
@@ -480,7 +485,7 @@ def test_modal_logic_with_recorded_window_calls(bk, tmp_path, monkeypatch):
     numbers, the Esc branch's report. Blender's real event loop, its progress display and a real
     Escape key press are tested in its window (tests/e2e/gui_session.py)."""
     from types import SimpleNamespace
-    monkeypatch.setattr(bk, "_MODAL_BUDGET_S", 0.0)        # one frame per timer event
+    monkeypatch.setattr(ops_of(bk).bake_ops, "_MODAL_BUDGET_S", 0.0)   # one frame per timer event
     ball, _ = _rig()
     live = _live(ball)
     scene = bpy.context.scene
@@ -498,9 +503,9 @@ def test_modal_logic_with_recorded_window_calls(bk, tmp_path, monkeypatch):
     assert [c[2][0] for c in log if c[1] == "progress_update"] == list(range(1, len(FRAMES) + 1))
     assert ("wm", "progress_end", (), {}) in log and op._timer is None
     np.testing.assert_array_equal(pcache.read_pc2(path)[0], live)
-    assert bk.using_cache(ball) and reports and "baked frames 1-10" in reports[-1][1].lower()
+    assert ops_of(bk).cache_modifier.using_cache(ball) and reports and "baked frames 1-10" in reports[-1][1].lower()
 
-    bk.switch_to_live(ball)
+    ops_of(bk).cache_switch.switch_to_live(ball)
     before = open(path, "rb").read()
     baker = bk.Baker(ball, scene, path, FIRST, LAST)
     baker.start()
@@ -511,7 +516,7 @@ def test_modal_logic_with_recorded_window_calls(bk, tmp_path, monkeypatch):
     assert op.modal(context, esc) == {"CANCELLED"}
     assert reports[-1][0] == {"WARNING"} and "cancelled after 3 of 10" in reports[-1][1].lower()
     assert open(path, "rb").read() == before and os.listdir(tmp_path) == ["modal.pc2"]
-    assert not bk.using_cache(ball) and _vp_modifier(ball).show_viewport
+    assert not ops_of(bk).cache_modifier.using_cache(ball) and _vp_modifier(ball).show_viewport
 
 
 def test_draw_bake_offers_the_right_buttons(bk, tmp_path):
@@ -519,13 +524,13 @@ def test_draw_bake_offers_the_right_buttons(bk, tmp_path):
 
     def drawn():
         log = []
-        bk.draw_bake(_Recorder(log), ball)
+        ops_of(bk).bake_ops.draw_bake(_Recorder(log), ball)
         return [c[2][0] for c in log if c[1] == "operator"]
 
     assert drawn() == ["object.vpffd_bake"]
     bk.bake(ball, bpy.context.scene, str(tmp_path / "b.pc2"), FIRST, 3, switch=True)
     assert drawn() == ["object.vpffd_bake", "object.vpffd_use_live"]
-    bk.switch_to_live(ball)
+    ops_of(bk).cache_switch.switch_to_live(ball)
     assert drawn() == ["object.vpffd_bake", "object.vpffd_use_cache"]
 
 
@@ -536,7 +541,7 @@ def test_status_panel_logic_in_a_recording_layout(bk, tmp_path):
     (tests/e2e/gui_session.py)."""
     import importlib
     from types import SimpleNamespace
-    status_panel = importlib.import_module(bk.engine.__package__ + ".panel").OBJECT_PT_vpffd_status
+    status_panel = importlib.import_module(bk.__package__ + ".panel").OBJECT_PT_vpffd_status
     ball, _ = _rig()
     bpy.context.scene.frame_set(6)
 
@@ -547,7 +552,7 @@ def test_status_panel_logic_in_a_recording_layout(bk, tmp_path):
         status_panel.draw(fake, context)
         return " ".join(c[3].get("text", "") for c in log if c[1] == "label")
 
-    info = bk.engine.status(ball)
+    info = ops_of(bk).status.status(ball)
     text = drawn()
     plain = f"Lattice modifier would give {info.plain_percent:.3f}% of its input"
     assert plain in text and "switched off" not in text
@@ -570,9 +575,9 @@ def test_blenders_apply_or_remove_after_a_bake_leaves_nothing_of_vpffds(bk, tmp_
     ball, _ = _rig()
     scene = bpy.context.scene
     bk.bake(ball, scene, str(tmp_path / "b.pc2"), FIRST, LAST, switch=True)
-    bk.switch_to_live(ball)
+    ops_of(bk).cache_switch.switch_to_live(ball)
     scene.frame_set(6)
-    helper_name = bk.engine.modifier.get_input(_vp_modifier(ball), bk.engine.modifier.SOLVER_INPUT).name
+    helper_name = ops_of(bk).node_group.get_input(_vp_modifier(ball), ops_of(bk).node_group.SOLVER_INPUT).name
     if how == "apply":
         with bpy.context.temp_override(object=ball, active_object=ball):
             assert bpy.ops.object.modifier_apply(modifier=_vp_modifier(ball).name) == {"FINISHED"}
@@ -586,7 +591,7 @@ def test_blenders_apply_or_remove_after_a_bake_leaves_nothing_of_vpffds(bk, tmp_
     # A playing cache stays when the VP-FFD modifier goes: it is what the object shows.
     ball2, _ = _rig("Ball2")
     bk.bake(ball2, scene, str(tmp_path / "c.pc2"), FIRST, LAST, switch=True)
-    assert bk.using_cache(ball2)
+    assert ops_of(bk).cache_modifier.using_cache(ball2)
     ball2.modifiers.remove(_vp_modifier(ball2))
     bpy.context.view_layer.update()
     assert [m.name for m in ball2.modifiers] == ["VP-FFD Cache"]

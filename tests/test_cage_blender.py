@@ -69,17 +69,17 @@ def test_box_cage_squash_keeps_volume_every_frame_and_matches_the_core(ext):
     rest = _volume(ball)
     rest_co = _co(ball)
     assert _bind(ball, lattice=cage_ob, axes="XYZ", cage_depth=2) == {"FINISHED"}
-    eng = ext.module.operators.engine
+    ops = ext.module.operators
     for f in range(1, 31, 3):
         bpy.context.scene.frame_set(f)
-        assert eng.stats(ball).get("error") is None
+        assert ops.status.stats(ball).get("error") is None
         assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL, f
     # Plain cage FFD (no correction) against the core, fed with Blender's evaluated cage points.
     ball.vpffd.axes = "NONE"
     bpy.context.scene.frame_set(15)
     dg = bpy.context.evaluated_depsgraph_get()
-    modifier = ext.module.operators.modifier
-    helper = modifier.get_input(modifier.find(ball), modifier.SOLVER_INPUT)   # Bind saved it there
+    ops = ext.module.operators
+    helper = ops.node_group.get_input(ops.modifier.find(ball), ops.node_group.SOLVER_INPUT)   # Bind saved it there
     cage_rest = np.array(helper["vpffd_cage_rest"]).reshape(-1, 3)
     cage = core.Cage(cage_rest, _cells(ext, cage_ob))
     M_cage = np.array(cage_ob.matrix_world)
@@ -123,8 +123,8 @@ def test_extruded_disc_cage_follows_hooks_and_edits_and_survives_a_reload(ext, t
     limb = _mesh_object("Limb", v * [0.7, 0.7, 1.05], f)
     rest = _volume(limb)
     assert _bind(limb, lattice=cage_ob, axes="XYZ", cage_depth=2) == {"FINISHED"}
-    eng = ext.module.operators.engine
-    assert eng.stats(limb).get("error") is None
+    ops = ext.module.operators
+    assert ops.status.stats(limb).get("error") is None
     # A hook on the top ring, driven by an Empty.
     empty = bpy.data.objects.new("Hook", None)
     bpy.context.scene.collection.objects.link(empty)
@@ -137,7 +137,7 @@ def test_extruded_disc_cage_follows_hooks_and_edits_and_survives_a_reload(ext, t
     empty.location = (0.5, 0.0, -0.6)
     bpy.context.view_layer.update()
     assert np.abs(_co(cage_ob, evaluated=True) - co).max() > 0.4       # the hook moved the cage
-    assert eng.stats(limb).get("error") is None
+    assert ops.status.stats(limb).get("error") is None
     assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL
     moved = _evaluated(limb)[0]
     assert np.abs(moved - v * [0.7, 0.7, 1.05]).max() > 0.1
@@ -157,7 +157,7 @@ def test_extruded_disc_cage_follows_hooks_and_edits_and_survives_a_reload(ext, t
     limb = bpy.data.objects["Limb"]
     bpy.context.view_layer.update()
     bpy.context.scene.frame_set(1)
-    assert eng.stats(limb).get("error") is None
+    assert ops.status.stats(limb).get("error") is None
     np.testing.assert_allclose(_evaluated(limb)[0], after_edit, atol=1e-5)
 
 
@@ -175,11 +175,11 @@ def test_fit_cage_encloses_the_selection(ext):
     assert np.allclose(lo, [1.5 - 0.3, -0.5 - 0.3, -3.5 - 0.3], atol=1e-3)
     assert np.allclose(hi, [4.5 + 0.3, 2.5 + 0.3, -0.5 + 0.3], atol=1e-3)
     assert _bind(ball, lattice=cage_ob, axes="XY", cage_depth=1) == {"FINISHED"}
-    assert ext.module.operators.engine.stats(ball).get("error") is None
+    assert ext.module.operators.status.stats(ball).get("error") is None
 
 
 def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
-    eng = ext.module.operators.engine
+    ops = ext.module.operators
     ball = _sphere()
     original = _co(ball).copy()
     # A mesh that is not a cage.
@@ -190,13 +190,13 @@ def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
     # A cage whose stored cells are inside out.
     cage_ob = _box_cage_around(ball)
     cells = [tuple(tuple(reversed(f)) for f in faces) for faces in _cells(ext, cage_ob)]
-    cage_ob.data["vpffd_cells"] = ext.module.operators.cage.encode_cells(cells)
+    cage_ob.data["vpffd_cells"] = ext.module.vpffd_addon.cage_cells.encode_cells(cells)
     ball.vpffd.lattice = cage_ob
     with pytest.raises(RuntimeError, match="(?i)inverted"):
         _bind(ball)
     assert not ball.vpffd.is_bound
     # A good cage, bound; then a cage vertex is deleted.
-    cage_ob.data["vpffd_cells"] = ext.module.operators.cage.encode_cells(
+    cage_ob.data["vpffd_cells"] = ext.module.vpffd_addon.cage_cells.encode_cells(
         [tuple(tuple(reversed(f)) for f in faces) for faces in cells])
     assert _bind(ball, axes="XYZ", cage_depth=1) == {"FINISHED"}
     bpy.context.view_layer.objects.active = cage_ob
@@ -209,7 +209,7 @@ def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
     bpy.ops.object.mode_set(mode="OBJECT")
     bpy.context.view_layer.update()
     bpy.context.scene.frame_set(2)
-    error = eng.stats(ball).get("error") or ""
+    error = ops.status.stats(ball).get("error") or ""
     assert "cage" in error and "vertices" in error
     assert np.isfinite(_evaluated(ball)[0]).all()
     assert np.array_equal(_co(ball), original)       # the mesh's own coordinates are untouched
@@ -219,20 +219,20 @@ def test_bad_cages_report_clear_errors_and_lose_nothing(ext):
 
 
 def test_overlay_draws_the_corrected_cage_and_folds_are_counted(ext):
-    eng = ext.module.operators.engine
+    ops = ext.module.operators
     ball = _sphere()
     cage_ob = _box_cage_around(ball, resolution=(2, 1, 1))
     _squash_key(cage_ob, amount=0.6)
     assert _bind(ball, lattice=cage_ob, axes="XY", cage_depth=1, show_overlay=True) == {"FINISHED"}
     bpy.context.scene.frame_set(15)
-    points, edges, label = eng.overlay_geometry(ball)
+    points, edges, label = ops.overlay.overlay_geometry(ball)
     assert len(points) == len(cage_ob.data.vertices) and len(edges) == len(cage_ob.data.edges)
     assert label.endswith("% volume")
     M = np.array(cage_ob.matrix_world)
     user = _co(cage_ob, evaluated=True) @ M[:3, :3].T + M[:3, 3]
     assert np.abs(points - user).max() > 1e-3                 # the correction moved the cage
     assert np.abs((points - user)[:, 2]).max() <= 1e-6        # XY: no vertical motion
-    assert eng.stats(ball)["folds"] == 0
+    assert ops.status.stats(ball)["folds"] == 0
     # Fold the cage: one end of its top layer pushed through the bottom (the whole top layer
     # pushed through would be a mirror, which folds nothing).
     co = _co(cage_ob)
@@ -243,12 +243,12 @@ def test_overlay_draws_the_corrected_cage_and_folds_are_counted(ext):
     cage_ob.data.vertices.foreach_set("co", co.astype(np.float32).ravel())
     cage_ob.data.update()
     bpy.context.scene.frame_set(1)
-    assert 0 < eng.stats(ball)["folds"] < len(ball.data.vertices), eng.stats(ball)
+    assert 0 < ops.status.stats(ball)["folds"] < len(ball.data.vertices), ops.status.stats(ball)
 
 
 def test_cage_follows_edit_mode_and_an_armature(ext):
     import bmesh
-    eng = ext.module.operators.engine
+    ops = ext.module.operators
     v, f = core.icosphere(3, 0.5)
     limb = _mesh_object("Limb", v * [1.0, 1.0, 1.8], f)
     _select_only(limb)
@@ -268,7 +268,7 @@ def test_cage_follows_edit_mode_and_an_armature(ext):
     bmesh.update_edit_mesh(cage_ob.data)
     bpy.context.view_layer.update()
     edited = _evaluated(limb)[0]
-    assert eng.stats(limb).get("error") is None
+    assert ops.status.stats(limb).get("error") is None
     assert np.abs(edited - before).max() > 0.1
     assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL
     bpy.ops.object.mode_set(mode="OBJECT")
@@ -289,7 +289,7 @@ def test_cage_follows_edit_mode_and_an_armature(ext):
     arm.pose.bones["Upper"].rotation_euler = (0.6, 0, 0)
     bpy.context.view_layer.update()
     bent = _evaluated(limb)[0]
-    assert eng.stats(limb).get("error") is None
+    assert ops.status.stats(limb).get("error") is None
     assert np.abs(bent - edited).max() > 0.1
     assert abs(_volume(limb) / rest - 1) <= VOLUME_TOL
 
@@ -335,7 +335,7 @@ def test_renders_deform_with_the_cage_or_lattice_hidden_from_render(ext, kind, t
 
 
 def test_mobility_group_of_the_cage_keeps_unassigned_points_still(ext):
-    eng = ext.module.operators.engine
+    ops = ext.module.operators
     ball = _sphere()
     cage_ob = _box_cage_around(ball, resolution=(2, 2, 2))
     _squash_key(cage_ob, amount=0.5)
@@ -346,9 +346,9 @@ def test_mobility_group_of_the_cage_keeps_unassigned_points_still(ext):
     assert _bind(ball, lattice=cage_ob, axes="XYZ", cage_depth=2, mobility_group="Free",
                  show_overlay=True) == {"FINISHED"}
     bpy.context.scene.frame_set(15)
-    assert eng.stats(ball).get("error") is None
+    assert ops.status.stats(ball).get("error") is None
     assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
-    points, _, _ = eng.overlay_geometry(ball)
+    points, _, _ = ops.overlay.overlay_geometry(ball)
     M = np.array(cage_ob.matrix_world)
     user = _co(cage_ob, evaluated=True) @ M[:3, :3].T + M[:3, 3]
     moved = np.abs(points - user).max(1)
@@ -392,11 +392,11 @@ def test_random_cages_and_deformations_keep_the_volume_in_blender(ext, seed):
     axes = ["XYZ", "XY", "Z", "YZ"][seed]
     assert _bind(ball, lattice=cage_ob, axes=axes, cage_depth=int(rng.integers(1, 4)),
                  volume_scale=float(rng.uniform(0.8, 1.2))) == {"FINISHED"}
-    eng = ext.module.operators.engine
+    ops = ext.module.operators
     scale = ball.vpffd.volume_scale
     for frame in range(1, 6):
         bpy.context.scene.frame_set(frame)
-        info = eng.stats(ball)
+        info = ops.status.stats(ball)
         assert info.get("error") is None, info
         assert not info.get("warnings"), info
         assert abs(_volume(ball) / (scale * rest) - 1) <= VOLUME_TOL, (frame, _volume(ball) / rest)

@@ -20,21 +20,21 @@ pytestmark = pytest.mark.blender
 
 
 def _modules(ext):
-    return ext.module.operators.engine, ext.module.operators.compiled_backend, ext.module.vpffd_addon
+    return ext.module.operators, ext.module.operators.compiled_backend, ext.module.vpffd_addon
 
 
 def test_bound_meshes_solve_with_the_compiled_kernels_as_with_numpys(ext):
-    engine, backend, vp = _modules(ext)
+    ops, backend, vp = _modules(ext)
     ball, lat = _ball(), _lattice()
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
-    info = engine.status(ball)
+    info = ops.status.status(ball)
     assert backend.status()[0] == "ready" and info.kernels == "compiled", (backend.status(), info)
     compiled = evaluated_world(ball)[0]
     vp.compiled.unload()
     try:
-        engine.update(ball, bpy.context.evaluated_depsgraph_get(), force=True)
+        ops.update.update(ball, bpy.context.evaluated_depsgraph_get(), force=True)
         bpy.context.view_layer.update()
-        info = engine.status(ball)
+        info = ops.status.status(ball)
         assert info.kernels == "NumPy" and info.kernels_why, info
         plain = evaluated_world(ball)[0]
     finally:
@@ -92,7 +92,7 @@ SECOND_SESSION = r'''
 import bpy, json, os
 import numpy as np
 vp = __import__(module + ".vpffd_addon", fromlist=["compiled"])
-engine = __import__(module + ".operators.engine", fromlist=["engine"])
+ops = __import__(module + ".operators", fromlist=["status", "update"])
 bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=3, radius=0.8)
 ob = bpy.context.active_object
 bpy.ops.object.add(type="LATTICE")
@@ -102,7 +102,7 @@ ob.vpffd.lattice, ob.vpffd.axes = lat, "XYZ"
 with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
     bpy.ops.object.vpffd_bind()
 kernels = vp.compiled._state["kernels"]
-print("VPFFD-SECOND " + json.dumps({"kernels": engine.status(ob).kernels, "names": sorted(kernels),
+print("VPFFD-SECOND " + json.dumps({"kernels": ops.status.status(ob).kernels, "names": sorted(kernels),
                                    "hits": sum(sum(k.stats.cache_hits.values()) for k in kernels.values()),
                                    "misses": sum(sum(k.stats.cache_misses.values()) for k in kernels.values()),
                                    "cache": os.environ.get("NUMBA_CACHE_DIR")}), flush=True)
@@ -134,11 +134,11 @@ def test_a_second_session_loads_the_kernels_from_the_cache(vpffd, tmp_path):
 def test_cpu_numpy_solves_and_binds_with_numpy_alone_and_says_so(ext, monkeypatch):
     """Backend CPU (NumPy) is the reference path: no compiled step or layout kernel runs, the panel
     says why, and the shape is the compiled one's."""
-    engine, _, vp = _modules(ext)
+    ops, _, vp = _modules(ext)
     ball, lat = _ball(), _lattice()
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
     compiled = evaluated_world(ball)[0]
-    assert engine.status(ball).kernels == "compiled"
+    assert ops.status.status(ball).kernels == "compiled"
     used = []
     real_steps, real_kernels = vp.compiled.CompiledSteps.__init__, vp.compiled.bind_kernels
     monkeypatch.setattr(vp.compiled.CompiledSteps, "__init__", lambda self, b: (used.append("steps"), real_steps(self, b))[1])
@@ -146,14 +146,14 @@ def test_cpu_numpy_solves_and_binds_with_numpy_alone_and_says_so(ext, monkeypatc
     ball.vpffd.backend = "NUMPY"
     ball.location.x += 0.01                       # a new embedding: the bind runs too
     bpy.context.view_layer.update()
-    info = engine.status(ball)
+    info = ops.status.status(ball)
     assert info.kernels == "NumPy" and "CPU (NumPy)" in info.kernels_why, info
     assert info.volume_percent is not None and abs(info.volume_percent - 100.0) <= 1e-3
     assert not used, used
     ball.vpffd.backend = "CPU"
     ball.location.x += 0.01
     bpy.context.view_layer.update()
-    assert engine.status(ball).kernels == "compiled" and used == ["layout", "steps"], used
+    assert ops.status.status(ball).kernels == "compiled" and used == ["layout", "steps"], used
     ball.location.x -= 0.02
     ball.vpffd.backend = "NUMPY"
     bpy.context.view_layer.update()
@@ -164,7 +164,7 @@ def test_cpu_numpy_solves_and_binds_with_numpy_alone_and_says_so(ext, monkeypatc
 CHUNK_SESSION = r'''
 import bpy, hashlib, json, sys
 import numpy as np
-engine = __import__(module + ".operators.engine", fromlist=["engine"])
+ops = __import__(module + ".operators", fromlist=["status", "update"])
 frames = json.loads(open("frames.json").read())
 bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=4, radius=0.7)
 ob = bpy.context.active_object
@@ -194,7 +194,7 @@ for f in frames:
     ev = ob.evaluated_get(bpy.context.evaluated_depsgraph_get())
     co = np.empty(len(ev.data.vertices) * 3, np.float32)
     ev.data.vertices.foreach_get("co", co)
-    info = engine.status(ob)
+    info = ops.status.status(ob)
     out[str(f)] = [hashlib.sha256(co.tobytes()).hexdigest(), info.kernels, info.volume_percent]
 print("VPFFD-CHUNK " + json.dumps(out), flush=True)
 '''

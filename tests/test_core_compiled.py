@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("numba", reason="numba is not installed in this environment")
 
 import vpffd_addon as vp  # noqa: E402
-from vpffd_addon import compiled  # noqa: E402
+from vpffd_addon import backends, compiled  # noqa: E402
 from vpffd_addon.steps import NumpySteps  # noqa: E402
 
 pytestmark = pytest.mark.core
@@ -95,9 +95,10 @@ def test_the_compiled_forward_product_and_vertices_equal_numpys(kernels, dtype):
                                                 (np.float32, True, "XYZ"), (np.float64, True, "Z")])
 def test_solves_with_the_compiled_steps_equal_numpys(kernels, dtype, islands, axes):
     b, P = _problem(dtype, islands=islands)
-    assert isinstance(compiled.default_steps(b), compiled.CompiledSteps)
+    assert isinstance(backends.default_steps(b), compiled.CompiledSteps)
     ref = vp.solve.solve(b, P, axes=axes, islands=islands, steps=NumpySteps)
     out = b.solve(P, axes=axes, islands=islands)            # the default: the compiled steps
+    assert (ref.backend, out.backend) == ("NUMPY", "COMPILED")
     again = b.solve(P, axes=axes, islands=islands)
     size = np.ptp(b.lattice.rest_points, 0).max()
     assert np.abs(out.verts - ref.verts).max() <= 1e-6 * size
@@ -109,17 +110,18 @@ def test_cages_keep_the_numpy_steps(kernels):
     cage = vp.box_cage((2, 2, 2))
     v, f = vp.icosphere(2, 0.5)
     b = vp.bind(cage, v, f)
-    assert type(compiled.default_steps(b)) is NumpySteps
+    assert type(backends.default_steps(b)) is NumpySteps
+    assert backends.choose("CPU", b) == (backends.NUMPY, "CPU chosen")
 
 
 def test_without_numba_the_numpy_steps_run_and_say_why():
     code = ("import sys; sys.modules['numba'] = None\n"       # as in a Blender without the wheels
             "import vpffd_addon as vp\n"
-            "from vpffd_addon import compiled\n"
+            "from vpffd_addon import backends, compiled\n"
             "print(compiled.load(), compiled.why())\n"
             "v, f = vp.icosphere(2, 0.5); lat = vp.Lattice((3, 3, 3))\n"
             "b = vp.bind(lat, v, f)\n"
-            "print(type(compiled.default_steps(b)).__name__, round(b.solve(lat.rest_points * 0.9).volume / b.rest_volume, 9))\n")
+            "print(type(backends.default_steps(b)).__name__, round(b.solve(lat.rest_points * 0.9).volume / b.rest_volume, 9))\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                           env=dict(os.environ, PYTHONPATH=ROOT))
     assert proc.returncode == 0, proc.stderr
@@ -213,7 +215,7 @@ def test_bezier_and_one_point_axes_bind_with_numpy(kernels):
 def test_a_numpy_outside_the_supported_range_keeps_numpy_and_says_why():
     code = ("import numpy as np\n"
             "np.__version__ = '2.6.0'\n"                    # as a newer NumPy another extension brought
-            "from vpffd_addon import compiled\n"
+            "from vpffd_addon import backends, compiled\n"
             "print(compiled.load(), compiled.why())\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                           env=dict(os.environ, PYTHONPATH=ROOT))
@@ -395,3 +397,21 @@ def test_the_compiled_topology_is_numpys(kernels):
         for name in ("labels", "face_island", "island_order", "island_start", "tris_t"):
             np.testing.assert_array_equal(getattr(out, name), getattr(ref, name), err_msg=name)
     assert [vp.Topology(t, nv).is_closed for t, nv in cases] == [True, False, False, False, True, True, True]
+
+
+@pytest.mark.parametrize("correct", [False, True])
+def test_a_frame_names_the_kernels_that_solved_it_and_use_compiled_off_keeps_numpy(kernels, correct):
+    """The pipeline's own solves (no solver of the caller's; the plain deformation) run where
+    `use_compiled` says: NumPy alone when it is off (the reference path), the compiled kernels
+    when it is on; the result says which (`FrameResult.backend`)."""
+    lat = vp.Lattice((4, 4, 4), bounds=((-1,) * 3, (1,) * 3))
+    v, t = vp.icosphere(3, 0.7)
+    P = lat.rest_points * [1.0, 1.0, 0.7]
+    ran = {}
+    for use_compiled in (False, True):
+        inputs = vp.FrameInputs(positions=v, tris=t, lattice=lat, points=P, matrix=np.eye(4),
+                                correct=correct, axes="XYZ" if correct else "", use_compiled=use_compiled)
+        result = vp.Pipeline().evaluate(inputs)
+        ran[use_compiled] = result.backend
+        assert (result.solution is not None) == correct
+    assert ran == {False: "NUMPY", True: "COMPILED"}

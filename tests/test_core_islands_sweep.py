@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import vpffd_addon as vp
-from vpffd_addon import compiled
+from vpffd_addon import backends, compiled
 from vpffd_addon.solve import _State
 from vpffd_addon.steps import NumpySteps
 
@@ -272,7 +272,7 @@ def test_without_numba_islands_keep_their_volumes():
     code = ("import sys; sys.modules['numba'] = None\n"
             "import numpy as np\n"
             "import vpffd_addon as vp\n"
-            "from vpffd_addon import compiled\n"
+            "from vpffd_addon import backends, compiled\n"
             "from tests import _meshes as M\n"
             "assert not compiled.load()\n"
             "v, f, part = M.union([vp.icosphere(2, 0.4), vp.box(2, 0.3, center=(0.5, 0.5, 0.3))])\n"
@@ -284,7 +284,7 @@ def test_without_numba_islands_keep_their_volumes():
             "        sol = b.solve(P, islands=True, **kw)\n"
             "        miss = np.abs(M.island_volumes(sol.verts, f, part) / M.island_volumes(v, f, part) - 1).max()\n"
             "        ok = miss < (1e-5 if dt == np.float32 else 1e-9)\n"
-            "        print(type(compiled.default_steps(b)).__name__, sol.warnings, ok)\n")
+            "        print(type(backends.default_steps(b)).__name__, sol.warnings, ok)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                           env=dict(os.environ, PYTHONPATH=ROOT))
     assert proc.returncode == 0, proc.stderr
@@ -295,7 +295,7 @@ def test_cage_islands_keep_their_volumes():
     cage = vp.box_cage((2, 2, 2))
     verts, tris, part = M.union([vp.icosphere(2, 0.3), vp.box(2, 0.25, center=(0.4, 0.4, 0.2))])
     b = vp.bind(cage, verts, tris)
-    assert type(compiled.default_steps(b)) is NumpySteps
+    assert type(backends.default_steps(b)) is NumpySteps
     pts = np.asarray(cage.rest_points) * [1.0, 1.0, 0.7]
     rest = M.island_volumes(verts, tris, part)
     for axes in ("XYZ", "Z"):

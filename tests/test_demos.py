@@ -141,8 +141,8 @@ def test_bent_arm_keeps_its_volume_at_bind_where_the_armature_alone_loses_it(ext
     arm = bpy.data.objects["Arm VP-FFD Bind"]
     s = arm.vpffd
     assert (s.target, s.outside, s.axes) == ("BIND", "FALLOFF", "XYZ")
-    engine = ext.module.operators.engine
-    info = engine.status(arm)
+    ops = ext.module.operators
+    info = ops.status.status(arm)
     assert info.target_from == "bind" and info.falloff > 0 and info.beyond > 0, info
 
 

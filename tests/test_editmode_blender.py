@@ -9,7 +9,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 import bmesh  # noqa: E402  (importable once bpy is)
 
-from .test_lifecycle_blender import _ball, _engine, _lattice  # noqa: E402
+from .test_lifecycle_blender import _ball, _ops, _lattice  # noqa: E402
 from .blender_ref import bind as _bind, evaluated_world  # noqa: E402
 
 pytestmark = pytest.mark.blender
@@ -72,7 +72,7 @@ def test_edit_mode_deforms_the_mesh_as_edited(ext, axes):
     def check(what):
         _settle()
         co, tris = _edited(ball)
-        ours, info = _evaluated(ball), _engine(ext).status(ball)
+        ours, info = _evaluated(ball), _ops(ext).status.status(ball)
         assert info.error is None and info.editing, (what, info)
         assert len(ours) == len(co), what
         if axes == "NONE":
@@ -103,7 +103,7 @@ def test_edit_mode_deforms_the_mesh_as_edited(ext, axes):
     check("vertices added")
     _mode(ball, "OBJECT")
     _settle()
-    info = _engine(ext).status(ball)
+    info = _ops(ext).status.status(ball)
     assert info.error is None and not info.editing
     ours = _evaluated(ball)
     assert len(ours) == len(ball.data.vertices)

@@ -98,8 +98,8 @@ def ext(vpffd):
     eh.reset_scene()
 
 
-def _engine(ext):
-    return ext.module.operators.engine
+def _ops(ext):
+    return ext.module.operators
 
 
 # -------------------------------------------------------------------------------------- tests
@@ -118,7 +118,7 @@ def test_squash_keeps_volume_every_frame_while_the_lattice_modifier_loses_it(ext
         v = _volume(ball)
         assert abs(v / rest - 1.0) <= VOLUME_TOL, f"frame {f}: volume {v / rest:.8f} of rest"
         worst_plain = min(worst_plain, _volume(plain) / rest)
-        info = _engine(ext).stats(ball)
+        info = _ops(ext).status.stats(ball)
         assert info.get("error") is None
         assert abs(info["volume_percent"] - 100.0) <= 100 * VOLUME_TOL
     assert worst_plain <= 0.8, f"plain Lattice modifier kept {worst_plain:.1%}: the test squash is too weak"
@@ -215,6 +215,28 @@ def test_meshes_sharing_a_lattice_each_keep_their_volume(ext):
         assert abs(_volume(ob) / rest[ob.name] - 1) <= VOLUME_TOL
 
 
+def test_settings_named_as_frame_inputs_reach_the_core_as_they_are(ext):
+    """Every field of FrameInputs with a setting of its name is read from that setting (a new
+    setting so named needs no line in frame_read.py); the ones the Blender layer computes keep
+    their own values. Checked on the frame read for a bound mesh, after every such setting was
+    changed from its default."""
+    ops = _ops(ext)
+    ball, lat = _sphere(), _lattice()
+    assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
+    s = ball.vpffd
+    named = ops.frame_read.same_named_settings(s)
+    assert {"strength", "volume_scale", "cage_depth", "cage_outside"} <= set(named), named
+    s.strength, s.volume_scale, s.cage_depth, s.cage_outside = 0.7, 1.2, 2, "STAY"
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    state = ops.bound.states[ball.session_uid]
+    frame = ops.frame_read.read(ball, state, ops.modifier.find(ball), depsgraph, None)
+    assert (frame.inputs.strength, frame.inputs.volume_scale, frame.inputs.cage_depth,
+            frame.inputs.cage_outside) == (pytest.approx(0.7), pytest.approx(1.2), 2, "STAY")
+    # Computed by frame_read.py, not read as they are: the lattice (a model, not the object),
+    # the axes (World or lattice ones), Outside (a cage has its own).
+    assert isinstance(frame.inputs.lattice, ext.module.vpffd_addon.Lattice) and frame.inputs.axes == "XYZ"
+
+
 def test_volume_scale_is_animatable_and_world_axes_work(ext):
     ball = _sphere()
     lat = _lattice()
@@ -296,7 +318,7 @@ def test_toggle_like_a_modifier(ext):
 
 
 def test_bad_input_is_reported_and_nothing_is_lost(ext):
-    eng = _engine(ext)
+    ops = _ops(ext)
     ball = _sphere()
     lat = _lattice()
     _animate_squash(lat)
@@ -305,17 +327,17 @@ def test_bad_input_is_reported_and_nothing_is_lost(ext):
     with bpy.context.temp_override(object=ball, active_object=ball):
         bpy.context.view_layer.objects.active = ball
         bpy.ops.object.mode_set(mode="EDIT")
-        with pytest.raises(eng.BindError, match="Edit Mode"):
-            eng.check_bindable(ball)
+        with pytest.raises(ops.lifecycle.BindError, match="Edit Mode"):
+            ops.lifecycle.check_bindable(ball)
         bpy.ops.object.mode_set(mode="OBJECT")
     assert _bind(ball, lattice=lat) == {"FINISHED"}
     # Lattice renamed: still works. Lattice deleted: no exception, an error, the plain mesh.
     lat.name = "Renamed"
     bpy.context.scene.frame_set(10)
-    assert eng.stats(ball).get("error") is None
+    assert ops.status.stats(ball).get("error") is None
     bpy.data.objects.remove(lat)
     bpy.context.scene.frame_set(11)
-    assert "lattice" in eng.stats(ball)["error"]
+    assert "lattice" in ops.status.stats(ball)["error"]
     np.testing.assert_array_equal(_evaluated(ball)[0].astype(np.float32).ravel(), np.frombuffer(original, np.float32))
     # Topology edited after binding: the new topology is taken as it comes (no Re-bind), the
     # mesh's own coordinates stay intact.
@@ -325,7 +347,7 @@ def test_bad_input_is_reported_and_nothing_is_lost(ext):
     ball.data.vertices.add(1)
     rest = _volume(ball)
     bpy.context.scene.frame_set(15)
-    assert eng.stats(ball).get("error") is None
+    assert ops.status.stats(ball).get("error") is None
     assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
     assert _mesh_co(ball)[:-3].tobytes() == original
 
@@ -333,7 +355,7 @@ def test_bad_input_is_reported_and_nothing_is_lost(ext):
 def test_linked_duplicates_each_deform_their_own_placement(ext):
     """Alt-D: two objects share one mesh; each has its own VP-FFD modifier and solver helper, so
     each shows the solve for its own placement in the lattice (no Make Single User needed)."""
-    eng = _engine(ext)
+    ops = _ops(ext)
     ball = _sphere(radius=0.6)
     lat = _lattice()
     _animate_squash(lat)
@@ -347,9 +369,9 @@ def test_linked_duplicates_each_deform_their_own_placement(ext):
     for f in (1, 8, 15):
         scene.frame_set(f)
         for ob in (ball, twin):
-            assert eng.stats(ob).get("error") is None, f"{ob.name}: {eng.stats(ob).get('error')}"
-        rest = eng.stats(twin)["input_volume"]
-        assert abs(eng.stats(twin)["volume_percent"] - 100) <= 100 * VOLUME_TOL
+            assert ops.status.stats(ob).get("error") is None, f"{ob.name}: {ops.status.stats(ob).get('error')}"
+        rest = ops.status.stats(twin)["input_volume"]
+        assert abs(ops.status.stats(twin)["volume_percent"] - 100) <= 100 * VOLUME_TOL
     inputs = ext.module.operators.node_inputs
     helpers = {v for ob in (ball, twin) for v in inputs.values(ob.modifiers[-1]).values()
                if getattr(v, "type", None) == "MESH"}
@@ -362,22 +384,22 @@ def test_linked_duplicates_each_deform_their_own_placement(ext):
 
 
 def test_open_mesh_single_point_axis_and_outside_vertices_warn(ext):
-    eng = _engine(ext)
+    ops = _ops(ext)
     v, f = core.box(2, 1.6)
     ob = _mesh_object("OpenBox", v, f[2:])                     # two triangles removed: open
     lat = _lattice(shape=(3, 1, 3), scale=0.5)                 # narrower than the box: outside
     ob.vpffd.lattice = lat
-    warnings = eng.bind(ob, bpy.context.evaluated_depsgraph_get())
+    warnings = ops.lifecycle.bind(ob, bpy.context.evaluated_depsgraph_get())
     text = " ".join(warnings)
     assert "not closed" in text and "outside the lattice" in text and "single point" in text
-    assert eng.stats(ob)["closed"] is False
+    assert ops.status.stats(ob)["closed"] is False
 
 
 def test_folded_lattice_reports_inverted_vertices_and_a_mirror_none(ext):
     """A mirror turns every vertex inside out alike: it mirrors space and folds nothing. Half the
     lattice mirrored onto the other half folds it: the vertices turned against the rest are
     inverted."""
-    eng = _engine(ext)
+    ops = _ops(ext)
     ball = _sphere(subdivisions=2, radius=0.45)
     lat = _lattice(shape=(2, 2, 2), interp="KEY_LINEAR", scale=2.0)
     co = _points(lat)
@@ -385,8 +407,8 @@ def test_folded_lattice_reports_inverted_vertices_and_a_mirror_none(ext):
     lat.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
     ball.vpffd.lattice = lat
     ball.vpffd.axes = "NONE"
-    warnings = eng.bind(ball, bpy.context.evaluated_depsgraph_get())
-    assert eng.stats(ball)["folds"] == 0 and eng.stats(ball)["mirrored"]
+    warnings = ops.lifecycle.bind(ball, bpy.context.evaluated_depsgraph_get())
+    assert ops.status.stats(ball)["folds"] == 0 and ops.status.stats(ball)["mirrored"]
     assert not any("inverted" in w for w in warnings)
     fold = _lattice(shape=(2, 2, 3), interp="KEY_LINEAR", scale=1.0)
     fold.scale = (1.0, 1.0, 0.5)
@@ -394,9 +416,9 @@ def test_folded_lattice_reports_inverted_vertices_and_a_mirror_none(ext):
     co[co[:, 2] > 0, 0] *= -1.0          # the top layer mirrored in X: the upper half turns over
     fold.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
     ball.vpffd.lattice = fold
-    warnings = eng.bind(ball, bpy.context.evaluated_depsgraph_get())
-    folds = eng.stats(ball)["folds"]
-    assert 0 < folds < len(ball.data.vertices) and not eng.stats(ball)["mirrored"]
+    warnings = ops.lifecycle.bind(ball, bpy.context.evaluated_depsgraph_get())
+    folds = ops.status.stats(ball)["folds"]
+    assert 0 < folds < len(ball.data.vertices) and not ops.status.stats(ball)["mirrored"]
     assert any(f"{folds:,} inverted" in w for w in warnings)
 
 
@@ -418,7 +440,7 @@ def test_saved_file_reopens_and_keeps_working(ext, tmp_path):
 
 
 def test_renders_run_the_solver_with_the_render_depsgraph(ext, tmp_path):
-    eng = _engine(ext)
+    ops = _ops(ext)
     ball = _sphere()
     lat = _lattice()
     _animate_squash(lat, 0.6)
@@ -436,15 +458,15 @@ def test_renders_run_the_solver_with_the_render_depsgraph(ext, tmp_path):
     bpy.ops.render.render(animation=True)
     for f in (14, 15, 16):
         assert (tmp_path / f"frame_{f:04d}.png").exists()
-    assert eng.stats(ball).get("error") is None
-    assert abs(eng.stats(ball)["volume_percent"] - 100) <= 100 * VOLUME_TOL
+    assert ops.status.stats(ball).get("error") is None
+    assert abs(ops.status.stats(ball)["volume_percent"] - 100) <= 100 * VOLUME_TOL
 
 
 def test_renders_leave_what_they_do_not_render_as_the_viewport_shows_it(ext, tmp_path):
     """A bound mesh in a collection hidden from renders (the camera icon) or excluded from the
     view layer (the checkbox) is not rendered: the render neither solves nor clears it, and the
     viewport keeps its corrected shape with no error; a rendered one is solved as usual."""
-    eng = _engine(ext)
+    ops = _ops(ext)
     scene = bpy.context.scene
     lat = _lattice()
     _animate_squash(lat, 0.6)
@@ -470,12 +492,15 @@ def test_renders_leave_what_they_do_not_render_as_the_viewport_shows_it(ext, tmp
     scene.render.resolution_x = scene.render.resolution_y = 32
     scene.render.filepath = str(tmp_path / "frame_")
     scene.frame_start, scene.frame_end = 14, 16
-    helper_of = ext.module.operators.modifier.helper
+    ops_pkg = ext.module.operators
+
+    def helper_of(ob):
+        return ops_pkg.solver_helper.helper(ob, ops_pkg.modifier.find(ob))
     during = []
 
     def record(scene, depsgraph=None):     # runs after VP-FFD's own frame handler
         if depsgraph is not None and depsgraph.mode == "RENDER":
-            during.append({name: (eng.stats(ball).get("error"), len(helper_of(ball).data.vertices))
+            during.append({name: (ops.status.stats(ball).get("error"), len(helper_of(ball).data.vertices))
                            for name, ball in balls.items()})
 
     bpy.app.handlers.frame_change_post.append(record)
@@ -493,7 +518,7 @@ def test_renders_leave_what_they_do_not_render_as_the_viewport_shows_it(ext, tmp
     bpy.context.view_layer.layer_collection.children["Excluded Collection"].exclude = False
     scene.frame_set(15)
     np.testing.assert_allclose(evaluated_world(balls["Excluded"])[0], shown["Excluded"], atol=1e-6)
-    assert eng.stats(balls["Excluded"]).get("error") is None
+    assert ops.status.stats(balls["Excluded"]).get("error") is None
 
 
 def test_bind_appends_the_modifier_and_rebind_leaves_it_where_the_user_put_it(ext):
@@ -525,7 +550,7 @@ def test_bind_appends_the_modifier_and_rebind_leaves_it_where_the_user_put_it(ex
     rest = core.signed_volume(co.astype(np.float32).astype(float),
                               core.icosphere(3, 0.8)[1])
     bpy.context.scene.frame_set(15)
-    assert _engine(ext).stats(ball).get("error") is None
+    assert _ops(ext).status.stats(ball).get("error") is None
     assert abs(_volume(ball) / rest - 1) <= VOLUME_TOL
 
 
@@ -535,7 +560,7 @@ def test_overlay_geometry_is_the_corrected_lattice_in_world_space(ext):
     _animate_squash(lat, 0.5)
     _bind(ball, lattice=lat, axes="XY", show_overlay=True)
     bpy.context.scene.frame_set(15)
-    points, edges, label = _engine(ext).overlay_geometry(ball)
+    points, edges, label = _ops(ext).overlay.overlay_geometry(ball)
     assert len(points) == 64 and label.endswith("% volume")
     M = np.array(lat.matrix_world)
     deformed = _points(lat.evaluated_get(bpy.context.evaluated_depsgraph_get()), "co_deform")
@@ -568,53 +593,53 @@ def test_fold_attribute_holds_the_jacobian_determinant(ext):
     # so det < 0 exactly above its middle (grid z > 0.5), and > 0 below.
     grid_z = z / lat.scale[2]
     assert (det[grid_z > 0.52] < 0).all() and (det[grid_z < 0.48] > 0).all()
-    assert _engine(ext).stats(ball)["folds"] == int((det <= 0).sum()) > 0
+    assert _ops(ext).status.stats(ball)["folds"] == int((det <= 0).sum()) > 0
     with bpy.context.temp_override(object=ball, active_object=ball):
         bpy.ops.object.vpffd_unbind()
     assert "vpffd_jacobian" not in ball.data.attributes
 
 
-def _squashed_bound_ball(eng):
+def _squashed_bound_ball(ops):
     """(ball bound with XY correction, its lattice) at frame 15 of a squash, solved without error."""
     ball = _sphere()
     lat = _lattice()
     _animate_squash(lat, 0.5)
     _bind(ball, lattice=lat, axes="XY")
     bpy.context.scene.frame_set(15)
-    assert eng.stats(ball).get("error") is None
+    assert ops.status.stats(ball).get("error") is None
     return ball, lat
 
 
 def test_entering_and_leaving_edit_mode_unchanged_keeps_shape_and_figures(ext):
-    eng = _engine(ext)
-    ball, _ = _squashed_bound_ball(eng)
+    ops = _ops(ext)
+    ball, _ = _squashed_bound_ball(ops)
     shown = evaluated_world(ball)[0]
     bpy.context.view_layer.objects.active = ball
     bpy.ops.object.mode_set(mode="EDIT")
     bpy.context.view_layer.update()
-    info = eng.stats(ball)
+    info = ops.status.stats(ball)
     assert info.get("error") is None and info.get("editing") and "paused" not in info, info
     assert info.get("volume_percent") is not None, "the mesh as edited is solved live"
     bpy.ops.object.mode_set(mode="OBJECT")         # nothing moved: the inputs are as before
     bpy.context.view_layer.update()
-    info = eng.stats(ball)
+    info = ops.status.stats(ball)
     assert info.get("error") is None and not info.get("editing")
     np.testing.assert_array_equal(evaluated_world(ball)[0], shown)
 
 
 def test_switched_off_modifier_says_so_and_switching_on_solves_again(ext):
-    eng = _engine(ext)
-    ball, lat = _squashed_bound_ball(eng)
+    ops = _ops(ext)
+    ball, lat = _squashed_bound_ball(ops)
     ball.vpffd.lattice = None                      # an error while on ...
     bpy.context.view_layer.update()
-    assert "lattice" in (eng.stats(ball).get("error") or "")
+    assert "lattice" in (ops.status.stats(ball).get("error") or "")
     ball.vpffd.enabled = False                     # ... is not kept once switched off
     bpy.context.view_layer.update()
-    assert eng.stats(ball).get("switched_off") and eng.stats(ball).get("error") is None
+    assert ops.status.stats(ball).get("switched_off") and ops.status.stats(ball).get("error") is None
     ball.vpffd.lattice = lat
     ball.vpffd.enabled = True
     bpy.context.view_layer.update()
-    info = eng.stats(ball)
+    info = ops.status.stats(ball)
     assert not info.get("switched_off") and info.get("error") is None
     assert abs(info["volume_percent"] - 100) <= 100 * VOLUME_TOL
 
@@ -622,9 +647,9 @@ def test_switched_off_modifier_says_so_and_switching_on_solves_again(ext):
 def test_vertices_outside_the_lattice_are_reported_while_they_are_outside(ext):
     """The panel's outside-the-lattice warning holds while the mesh is partly outside (counted
     here independently in lattice space) and goes when it is back inside."""
-    eng = _engine(ext)
-    ball, lat = _squashed_bound_ball(eng)
-    assert not eng.stats(ball).get("outside")
+    ops = _ops(ext)
+    ball, lat = _squashed_bound_ball(ops)
+    assert not ops.status.stats(ball).get("outside")
     ball.location.x = 0.7                              # the ball (radius 0.8) pokes out at x = 1
     bpy.context.view_layer.update()
     co = np.array([v.co for v in ball.data.vertices], np.float64)
@@ -633,34 +658,34 @@ def test_vertices_outside_the_lattice_are_reported_while_they_are_outside(ext):
     grid = _points(lat)                                 # rest grid in lattice space
     eps = 1e-6 * float(np.linalg.norm(grid.max(0) - grid.min(0)))
     expected = int(((in_lat < grid.min(0) - eps) | (in_lat > grid.max(0) + eps)).any(1).sum())
-    info = eng.stats(ball)
+    info = ops.status.stats(ball)
     assert expected > 0 and info.get("outside") == expected
-    assert "outside the lattice" in eng.outside_message(eng.status(ball), False)
+    assert "outside the lattice" in ops.status.outside_message(ops.status.status(ball), False)
     ball.location.x = 0.0
     bpy.context.view_layer.update()
-    assert not eng.stats(ball).get("outside")
+    assert not ops.status.stats(ball).get("outside")
 
 
 def test_nothing_stale_is_drawn_or_shown_while_switched_off(ext):
-    eng = _engine(ext)
-    ball, _ = _squashed_bound_ball(eng)
+    ops = _ops(ext)
+    ball, _ = _squashed_bound_ball(ops)
     ball.vpffd.show_overlay = True
     bpy.context.view_layer.update()
-    assert eng.overlay_geometry(ball) is not None
+    assert ops.overlay.overlay_geometry(ball) is not None
     ball.vpffd.enabled = False
     bpy.context.view_layer.update()
-    assert eng.overlay_geometry(ball) is None
-    assert "volume_percent" not in eng.stats(ball)
+    assert ops.overlay.overlay_geometry(ball) is None
+    assert "volume_percent" not in ops.status.stats(ball)
     ball.vpffd.enabled = True
     bpy.context.view_layer.update()
-    assert eng.overlay_geometry(ball) is not None and "volume_percent" in eng.stats(ball)
+    assert ops.overlay.overlay_geometry(ball) is not None and "volume_percent" in ops.status.stats(ball)
 
 
 def test_a_new_problem_is_logged_once_as_a_vpffd_line(ext, capsys):
     """The console (and a farm's log) gets one `VP-FFD: <object>: <problem>` line per new problem,
     through the extension's own logger."""
-    eng = _engine(ext)
-    ball, lat = _squashed_bound_ball(eng)
+    ops = _ops(ext)
+    ball, lat = _squashed_bound_ball(ops)
     capsys.readouterr()
     ball.vpffd.lattice = None
     bpy.context.view_layer.update()
@@ -673,7 +698,7 @@ def test_a_lattice_that_mirrors_space_mirrors_the_mesh_and_keeps_the_size_of_its
     """The lattice's points mirrored in Z (and squashed): Correction None gives the Lattice
     modifier's mirrored mesh (negative volume); XYZ keeps the volume's size with the mirrored sign,
     stays close to that mirrored shape (never turned inside out) and the panel says so."""
-    eng = _engine(ext)
+    ops = _ops(ext)
     ball = _sphere()
     rest = _volume(ball)
     lat = _lattice()
@@ -684,7 +709,7 @@ def test_a_lattice_that_mirrors_space_mirrors_the_mesh_and_keeps_the_size_of_its
     bpy.context.view_layer.update()
     corrected, _ = _evaluated(ball)
     vol = _volume(ball)
-    info = eng.stats(ball)
+    info = ops.status.stats(ball)
     assert vol < 0 and abs(abs(vol) / rest - 1) <= VOLUME_TOL, (vol, rest)
     assert abs(info["volume_percent"] / 100 - abs(vol) / rest) <= 1e-6
     assert any("mirrors space" in w for w in info["warnings"]), info["warnings"]
@@ -696,7 +721,7 @@ def test_a_lattice_that_mirrors_space_mirrors_the_mesh_and_keeps_the_size_of_its
 
 
 def test_folds_are_counted_on_every_update_up_to_5000_vertices_and_on_request_above(ext):
-    eng = _engine(ext)
+    ops = _ops(ext)
     lat = _lattice()
     co = _points(lat)
     top = co[:, 2] > co[:, 2].max() - 1e-6
@@ -707,8 +732,8 @@ def test_folds_are_counted_on_every_update_up_to_5000_vertices_and_on_request_ab
     for ob in (small, big):
         assert _bind(ob, lattice=lat, axes="NONE") == {"FINISHED"}
     bpy.context.view_layer.update()
-    assert eng.stats(small).get("folds", 0) > 0
-    assert "folds" not in eng.stats(big), "above 5,000 vertices folds are counted on request"
+    assert ops.status.stats(small).get("folds", 0) > 0
+    assert "folds" not in ops.status.stats(big), "above 5,000 vertices folds are counted on request"
     with bpy.context.temp_override(object=big, active_object=big, selected_objects=[big]):
         assert bpy.ops.object.vpffd_check_folds() == {"FINISHED"}
-    assert eng.stats(big)["folds"] > 0
+    assert ops.status.stats(big)["folds"] > 0

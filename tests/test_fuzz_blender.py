@@ -19,7 +19,7 @@ Invariants, checked after every step (the scene is first re-evaluated with `fram
   whose topology changed.
 * No NaN or inf in any mesh: coordinates, `vpffd_*` attributes and evaluated coordinates.
 * No handler raises (sys.excepthook sees nothing, and nothing printed "update failed" or a
-  traceback); problems are ValueErrors reported in `engine.stats(obj)['error']`, never other
+  traceback); problems are ValueErrors reported in `ops.status.stats(obj)['error']`, never other
   exception types.
 * Every reported volume (`volume_percent`) matches a volume computed here, independently, from the
   evaluated mesh's float32 coordinates in lattice space (closed meshes: any origin; open meshes:

@@ -66,7 +66,7 @@ class CageFuzz(RuleBasedStateMachine):
         super().__init__()
         eh.reset_scene()
         self.cage_mod = _EXT["ext"].module.operators.cage
-        self.engine = _EXT["ext"].module.operators.engine
+        self.ops = _EXT["ext"].module.operators
         v, f = core.icosphere(2, 0.45)
         me = bpy.data.meshes.new("Ball")
         me.from_pydata(v.tolist(), [], f.tolist())
@@ -193,7 +193,7 @@ class CageFuzz(RuleBasedStateMachine):
         assert np.isfinite(co).all(), "non-finite coordinates reached the evaluated mesh"
         if not self.ball.vpffd.is_bound:
             return
-        info = self.engine.stats(self.ball)
+        info = self.ops.status.stats(self.ball)
         error = info.get("error")
         assert not (error and UNEXPECTED.match(error)), f"an exception reached the panel: {error}"
         s = self.ball.vpffd

@@ -300,7 +300,7 @@ def test_the_extension_solves_on_the_gpu_when_asked_and_says_why_when_it_does_no
     import bpy
     from . import extension_harness as eh
     from .blender_ref import triangle_mesh
-    engine = vpffd.module.operators.engine
+    ops = vpffd.module.operators
     eh.reset_scene()
     verts, tris = vp.icosphere(3, 0.8)
     ob = bpy.data.objects.new("Ball", triangle_mesh(verts, tris, "Ball"))
@@ -320,12 +320,12 @@ def test_the_extension_solves_on_the_gpu_when_asked_and_says_why_when_it_does_no
     ob.vpffd.backend = "GPU"
     with bpy.context.temp_override(object=ob, active_object=ob):
         assert bpy.ops.object.vpffd_bind() == {"FINISHED"}
-    info = engine.stats(ob)
+    info = ops.status.stats(ob)
     assert info["backend"] == "GPU", info.get("backend_reason")
     assert abs(info["volume_percent"] - 100.0) <= 1e-3
     ob.vpffd.backend = "AUTO"
-    assert engine.update(ob, bpy.context.evaluated_depsgraph_get(), force=True)
-    info = engine.stats(ob)
+    assert ops.update.update(ob, bpy.context.evaluated_depsgraph_get(), force=True)
+    info = ops.status.stats(ob)
     assert info["backend"] == "CPU" and "Auto" in info["backend_reason"]
     eh.reset_scene()
 
@@ -387,7 +387,7 @@ def test_auto_goes_back_to_the_cpu_when_the_gpu_measures_slower(gb, vpffd, monke
     import bpy
     from . import extension_harness as eh
     from .blender_ref import squash_lattice, triangle_mesh
-    engine, gpu_backend = vpffd.module.operators.engine, vpffd.module.operators.gpu_backend
+    ops, gpu_backend = vpffd.module.operators, vpffd.module.operators.gpu_backend
     monkeypatch.setattr(gpu_backend, "is_software_renderer", lambda: False)
     eh.reset_scene()
     verts, tris = vp.icosphere(6, 0.4)            # 40,962 vertices
@@ -402,8 +402,8 @@ def test_auto_goes_back_to_the_cpu_when_the_gpu_measures_slower(gb, vpffd, monke
     bpy.context.scene.frame_set(1)
     with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
         assert bpy.ops.object.vpffd_bind() == {"FINISHED"}
-    costs = engine._cache[ob.session_uid].costs
-    paths = [engine.stats(ob)["backend"]]
+    costs = ops.bound.states[ob.session_uid].costs
+    paths = [ops.status.stats(ob)["backend"]]
     # (Bind solves twice: its own solve, the first, on the CPU, and the update after it.)
     assert paths == ["GPU"] and any(k[0] == "CPU" for k in costs), (paths, costs)
     for f in range(2, 6):
@@ -412,7 +412,7 @@ def test_auto_goes_back_to_the_cpu_when_the_gpu_measures_slower(gb, vpffd, monke
         gpu = next(t for k, t in costs.items() if k[0] == "GPU")
         cpu = next(t for k, t in costs.items() if k[0] == "CPU")
         bpy.context.scene.frame_set(f)
-        info = engine.stats(ob)
+        info = ops.status.stats(ob)
         paths.append(info["backend"])
         assert info["backend"] == ("GPU" if gpu <= cpu else "CPU"), (f, paths, gpu, cpu)
         if gpu > cpu:

@@ -68,7 +68,7 @@ def test_every_island_keeps_its_volume_when_the_lattice_is_squashed_to_half(ext,
     miss = np.abs(now / rest - 1)
     assert miss.max() <= VOLUME_TOL, f"island {int(np.argmax(miss))} misses by {miss.max():.3g}"
     plain = ob.vpffd
-    info = ext.module.operators.engine.status(ob)
+    info = ext.module.operators.status.status(ob)
     assert info.error is None and not any("island" in w for w in info.warnings), info.warnings
     assert plain.use_islands
 
@@ -93,7 +93,7 @@ def test_many_small_islands_sharing_cells_each_keep_their_volume(ext, shape):
     np.testing.assert_array_equal(got_tris, tris)
     miss = np.abs(M.island_volumes(co, tris, island) / rest - 1)
     assert miss.max() <= VOLUME_TOL, f"island {int(np.argmax(miss))} misses by {miss.max():.3g}"
-    info = ext.module.operators.engine.status(ob)
+    info = ext.module.operators.status.status(ob)
     assert info.error is None and not info.warnings, (info.error, info.warnings)
 
 

@@ -22,8 +22,8 @@ from .blender_ref import squashed_lattice as _lattice
 pytestmark = pytest.mark.blender
 
 
-def _engine(ext):
-    return ext.module.operators.engine
+def _ops(ext):
+    return ext.module.operators
 
 
 def _ball(name="Ball"):
@@ -51,7 +51,7 @@ def test_deleting_the_lattice_frees_it_and_the_mesh_shows_undeformed(ext, tmp_pa
     assert np.abs(_coords(ball) - rest).max() > 0.05
     _delete(lat)
     bpy.context.scene.frame_set(2)
-    info = _engine(ext).stats(ball)
+    info = _ops(ext).status.stats(ball)
     assert "'Lattice' was deleted" in info["error"]
     np.testing.assert_array_equal(_coords(ball), rest)
     assert ball.vpffd.lattice is None
@@ -72,7 +72,7 @@ def test_a_lattice_linked_in_another_scene_only_leaves_this_one(ext):
     shown = _coords(ball)
     _delete(lat)
     bpy.context.scene.frame_set(2)
-    assert _engine(ext).stats(ball).get("error") is None
+    assert _ops(ext).status.stats(ball).get("error") is None
     assert ball.vpffd.lattice is lat
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
 
@@ -84,7 +84,7 @@ def test_removing_the_modifier_unbinds_quietly(ext):
     ball.modifiers.remove(ball.modifiers["VP-FFD"])
     bpy.context.view_layer.update()
     assert not ball.vpffd.is_bound and ball.vpffd.lattice is lat
-    assert _engine(ext).stats(ball).get("error") is None
+    assert _ops(ext).status.stats(ball).get("error") is None
     np.testing.assert_array_equal(_coords(ball), rest)
     assert not [a.name for a in ball.data.attributes if a.name.startswith("vpffd")]
 
@@ -98,7 +98,7 @@ def test_blenders_apply_on_the_modifier_keeps_the_shape_and_unbinds(ext):
         bpy.ops.object.modifier_apply(modifier="VP-FFD")
     bpy.context.view_layer.update()
     assert not ball.vpffd.is_bound
-    assert _engine(ext).stats(ball).get("error") is None
+    assert _ops(ext).status.stats(ball).get("error") is None
     assert not ball.modifiers
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
     assert abs(evaluated_volume(ball) / volume - 1) <= 1e-6
@@ -126,7 +126,7 @@ def test_a_mirroring_lattice_mirrors_the_mesh_and_keeps_its_volumes_size(ext):
     assert evaluated_volume(plain) < 0 and evaluated_volume(ball) < 0
     assert abs(evaluated_volume(ball) / -rest - 1) <= 1e-5
     np.testing.assert_allclose(ours[:, 2], theirs[:, 2], atol=1e-5)   # XY only: z is the mirror's
-    info = _engine(ext).stats(ball)
+    info = _ops(ext).status.stats(ball)
     assert abs(info["volume_percent"] - 100) <= 1e-3
     assert any("mirrors space" in w for w in info["warnings"])
 
@@ -146,12 +146,12 @@ def test_a_frame_that_cannot_be_solved_shows_the_same_whatever_came_before(ext):
         scene.frame_set(before)
         scene.frame_set(10)
         seen.append(_coords(ball))
-        assert "scaled to zero" in _engine(ext).stats(ball)["error"]
+        assert "scaled to zero" in _ops(ext).status.stats(ball)["error"]
     for shown in seen[1:]:
         np.testing.assert_array_equal(shown, seen[0])
     np.testing.assert_allclose(seen[0], rest, atol=1e-6)
     scene.frame_set(5)
-    assert _engine(ext).stats(ball).get("error") is None
+    assert _ops(ext).status.stats(ball).get("error") is None
 
 
 def test_vpffd_apply_needs_its_input_to_be_the_meshs_own_coordinates(ext):
@@ -178,13 +178,13 @@ def test_vpffd_apply_needs_its_input_to_be_the_meshs_own_coordinates(ext):
 def test_a_file_with_an_older_node_group_is_rebuilt_when_it_loads(ext, tmp_path):
     """A file saved by an earlier version carries that version's node group, whose tap this one
     may not read: loading the file rebuilds the group, and the mesh deforms as before."""
-    modifier = ext.module.operators.modifier
+    node_group = ext.module.operators.node_group
     ball, lat = _ball(), _lattice()
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
     shown = _coords(ball)
     ng = ball.modifiers["VP-FFD"].node_group
     # What an older version left: its own version number, and a tree without today's tap.
-    ng[modifier._TAG] = modifier._VERSION - 1
+    ng[node_group.GROUP_TAG] = node_group.GROUP_VERSION - 1
     ng.nodes.clear()
     ng.links.new(ng.nodes.new("NodeGroupInput").outputs[0], ng.nodes.new("NodeGroupOutput").inputs[0])
     path = str(tmp_path / "older.blend")
@@ -192,9 +192,9 @@ def test_a_file_with_an_older_node_group_is_rebuilt_when_it_loads(ext, tmp_path)
     bpy.ops.wm.open_mainfile(filepath=path)
     ball = bpy.data.objects["Ball"]
     ng = ball.modifiers["VP-FFD"].node_group
-    assert ng.get(modifier._TAG) == modifier._VERSION
+    assert ng.get(node_group.GROUP_TAG) == node_group.GROUP_VERSION
     bpy.context.scene.frame_set(bpy.context.scene.frame_current)
-    assert _engine(ext).stats(ball).get("error") is None
+    assert _ops(ext).status.stats(ball).get("error") is None
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
 
 
@@ -224,7 +224,7 @@ def test_the_modifier_shows_none_of_its_insides(ext, tmp_path):
     assert {item.identifier for item in inputs} == before
     assert all(item.hide_in_modifier for item in inputs) and mod.show_group_selector is False
     bpy.context.scene.frame_set(bpy.context.scene.frame_current)
-    assert _engine(ext).stats(ball).get("error") is None
+    assert _ops(ext).status.stats(ball).get("error") is None
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)
 
 
@@ -249,20 +249,20 @@ def test_hide_and_unhide_bring_the_corrected_shape_back(ext, how):
     """Hidden, Blender does not evaluate the object, so nothing reaches the slot: VP-FFD pauses
     (no error) and keeps its offsets; shown again, the corrected shape is back exactly, also
     after the lattice changed while it was hidden (it is solved again)."""
-    eng = _engine(ext)
+    ops = _ops(ext)
     ball, lat = _ball(), _lattice()
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
     bpy.context.scene.frame_set(1)
     shown = _coords(ball)
     rest = evaluated_volume(ball)
-    assert eng.stats(ball).get("error") is None
+    assert ops.status.stats(ball).get("error") is None
     _hide(ball, how, True)
     bpy.context.scene.frame_set(1)
-    assert eng.stats(ball).get("error") is None, eng.stats(ball)
-    assert "hidden" in (eng.status(ball).paused or "")
+    assert ops.status.stats(ball).get("error") is None, ops.status.stats(ball)
+    assert "hidden" in (ops.status.status(ball).paused or "")
     _hide(ball, how, False)
     bpy.context.scene.frame_set(1)
-    assert eng.stats(ball).get("error") is None, eng.stats(ball)
+    assert ops.status.stats(ball).get("error") is None, ops.status.stats(ball)
     np.testing.assert_allclose(_coords(ball), shown, rtol=0, atol=1e-6)
     # Changed while hidden: shown again, it is the new frame's corrected shape.
     _hide(ball, how, True)
@@ -277,7 +277,7 @@ def test_hide_and_unhide_bring_the_corrected_shape_back(ext, how):
     bpy.context.view_layer.update()
     after = _coords(ball)
     assert np.abs(after - shown).max() > 1e-3, "the lattice change shows"
-    assert eng.stats(ball).get("error") is None, eng.stats(ball)
+    assert ops.status.stats(ball).get("error") is None, ops.status.stats(ball)
     assert abs(evaluated_volume(ball) / rest - 1) <= 1e-5
 
 
@@ -285,11 +285,11 @@ def test_the_panels_first_line_says_what_is_shown(ext):
     """The main panel's first line (`status_line.headline`): the volume kept, measured here on the
     evaluated mesh, or why nothing is solved."""
     line = ext.module.operators.status_line.headline
-    engine = _engine(ext)
+    ops = _ops(ext)
     ball, lat = _ball(), _lattice()
 
     def first_line():
-        return line(engine.status(ball), ball.vpffd.is_bound, False)
+        return line(ops.status.status(ball), ball.vpffd.is_bound, False)
 
     assert first_line()[0].startswith("not bound")
     rest_volume = evaluated_volume(ball)
@@ -317,10 +317,10 @@ def test_undo_after_deleting_the_lattice_links_it_back(ext):
     ball, lat = _ball(), _lattice()
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
     shown = _coords(ball)
-    eng = _engine(ext)
+    ops = _ops(ext)
     _delete(lat)
     bpy.context.scene.frame_set(2)
-    assert ball.vpffd.lattice is None and "'Lattice' was deleted" in eng.stats(ball)["error"]
+    assert ball.vpffd.lattice is None and "'Lattice' was deleted" in ops.status.stats(ball)["error"]
     # What undo restores: the lattice object in the scene again, the mesh's field still cleared.
     bpy.context.scene.collection.objects.link(lat)
     bpy.context.view_layer.update()
@@ -328,5 +328,5 @@ def test_undo_after_deleting_the_lattice_links_it_back(ext):
     ext.module.operators.handlers.on_undo()            # as Blender calls it after the undo
     assert ball.vpffd.lattice == lat
     bpy.context.scene.frame_set(3)
-    assert eng.stats(ball).get("error") is None, eng.stats(ball)
+    assert ops.status.stats(ball).get("error") is None, ops.status.stats(ball)
     np.testing.assert_allclose(_coords(ball), shown, atol=1e-6)

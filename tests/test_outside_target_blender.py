@@ -22,8 +22,8 @@ from .blender_ref import (bind as _bind, bone_weights_by_height, evaluated_world
 pytestmark = pytest.mark.blender
 
 
-def _engine(ext):
-    return ext.module.operators.engine
+def _ops(ext):
+    return ext.module.operators
 
 
 def _volume(co, tris):
@@ -59,7 +59,7 @@ def test_follow_with_correction_none_equals_the_lattice_modifier_outside_too(ext
     twin.modifiers.new("Lattice", "LATTICE").object = lat
     assert _bind(ob, lattice=lat, axes="NONE", outside="FOLLOW") == {"FINISHED"}
     ours, theirs = evaluated_world(ob)[0], evaluated_world(twin)[0]
-    assert _engine(ext).status(ob).outside > 100
+    assert _ops(ext).status.status(ob).outside > 100
     assert np.abs(ours - theirs).max() <= 1e-6 * np.ptp(theirs, 0).max()
 
 
@@ -77,12 +77,12 @@ def test_falloff_keeps_the_volume_and_leaves_vertices_beyond_it_in_place(ext):
     beyond, fading = d >= 0.25, (d > 0) & (d < 0.25)
     assert beyond.sum() > 50 and fading.sum() > 50
     np.testing.assert_array_equal(co[beyond], rest[beyond])
-    info = _engine(ext).status(ob)
+    info = _ops(ext).status.status(ob)
     assert info.falloff == fading.sum() and info.beyond == beyond.sum(), info
-    assert "fades out over" in _engine(ext).outside_message(info, False)
+    assert "fades out over" in _ops(ext).status.outside_message(info, False)
     # The overlay's falloff box: the lattice's box grown by the distance, in world space.
     ob.vpffd.show_overlay = True
-    corners, edges = _engine(ext).falloff_geometry(ob)
+    corners, edges = _ops(ext).overlay.falloff_geometry(ob)
     np.testing.assert_allclose(np.sort(np.unique(corners.round(9), axis=0), 0)[[0, -1]],
                                [[-0.75] * 3, [0.75] * 3], atol=1e-6)
     assert len(edges) == 12 and all(np.count_nonzero(corners[a] != corners[b]) == 1 for a, b in edges)
@@ -96,7 +96,9 @@ def test_inside_only_leaves_outside_vertices_exactly_in_place(ext):
     ob, tris = _half_outside("Ball")
     lat = _squashed("L")
     rest = _mesh_co(ob)
+    # INSIDE, the earlier name of Stay: scripts that set it keep working, and it reads STAY.
     assert _bind(ob, lattice=lat, axes="XYZ", outside="INSIDE") == {"FINISHED"}
+    assert ob.vpffd.outside == "STAY"
     co = evaluated_world(ob)[0]
     outside = (np.abs(rest) > 0.5 + 1e-6).any(1)
     assert outside.sum() > 100
@@ -144,7 +146,7 @@ def test_target_bind_gives_back_the_volume_the_armature_takes(ext, tmp_path, isl
                  outside="FALLOFF", falloff_distance=0.5) == {"FINISHED"}
     scene.frame_set(10)
     co = evaluated_world(ob)[0]
-    info = _engine(ext).status(ob)
+    info = _ops(ext).status.status(ob)
     assert info.target_from == "bind" and info.input_percent < 99.5, info   # the bend lost volume
     got = [_volume(co, g) for g in groups]
     np.testing.assert_allclose(got, bind_volumes, rtol=1e-5)
@@ -181,7 +183,25 @@ def test_target_bind_keeps_volume_scale_times_the_volume_at_bind(ext):
         scene.frame_set(frame)
         measured = _volume(evaluated_world(ob)[0], tris) / bind_volume
         assert abs(measured / 1.2 - 1) <= 1e-5, (frame, measured)
-        info = _engine(ext).status(ob)
+        info = _ops(ext).status.status(ob)
         assert abs(info.volume_percent - 100 * measured) <= 1e-6 * 100 * measured, (frame, info)
         assert line(info, True, False)[0] == f"volume {info.volume_percent:.3f}% of its volume at Bind"
-    assert _engine(ext).status(ob).input_percent < 99.5, "the bend lost volume before VP-FFD"
+    assert _ops(ext).status.status(ob).input_percent < 99.5, "the bend lost volume before VP-FFD"
+
+
+def test_files_saved_with_the_earlier_outside_names_read_the_same_modes(ext, tmp_path):
+    """A .blend stores an Outside setting as its number: an earlier version's Inside Only (the
+    lattice's 2) and the cage's Stay (1) read STAY, after a save and a load too."""
+    ob = bpy.data.objects.new("Stored", bpy.data.meshes.new("Stored"))
+    bpy.context.scene.collection.objects.link(ob)
+    ob.vpffd["outside"], ob.vpffd["cage_outside"] = 2, 1     # as such a file holds them
+    assert (ob.vpffd.outside, ob.vpffd.cage_outside) == ("STAY", "STAY")
+    ob.vpffd["outside"] = 1
+    assert ob.vpffd.outside == "FALLOFF"
+    ob.vpffd.outside, ob.vpffd.cage_outside = "INSIDE", "FOLLOW"
+    path = str(tmp_path / "outside.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    back = bpy.data.objects["Stored"].vpffd
+    assert (back.outside, back.cage_outside) == ("STAY", "FOLLOW")
+    assert (back["outside"], back.get("cage_outside", 0)) == (2, 0)

@@ -44,12 +44,12 @@ def _ball(name="Ball", radius=0.8):
 def _first_line(ext, ob, **kw):
     ops = _ops(ext)
     s = ob.vpffd
-    return ops.status_line.headline(ops.engine.status(ob), s.is_bound, False,
+    return ops.status_line.headline(ops.status.status(ob), s.is_bound, False,
                                     ops.status_line.applied_lattice(s), **kw)
 
 
 def _status_lines(ext, ob):
-    return _ops(ext).status_line.status_lines(_ops(ext).engine.status(ob), False, ob.vpffd.backend)
+    return _ops(ext).status_line.status_lines(_ops(ext).status.status(ob), False, ob.vpffd.backend)
 
 
 def _counted(text):
@@ -97,13 +97,13 @@ def test_an_open_mesh_enclosing_no_volume_deforms_as_the_lattice_modifier_whatev
     assert any("encloses no volume" in t for t, _ in _status_lines(ext, grid))
     _assert_counts_agree(ext, grid)
     # Moved off the centre it has a volume about it, which is kept; back, none again.
-    eng = _ops(ext).engine
+    ops = _ops(ext)
     grid.location.z = 0.2
     bpy.context.view_layer.update()
-    assert not eng.status(grid).encloses_nothing and abs(eng.status(grid).volume_percent - 100) <= 1e-3
+    assert not ops.status.status(grid).encloses_nothing and abs(ops.status.status(grid).volume_percent - 100) <= 1e-3
     grid.location.z = 0.0
     bpy.context.view_layer.update()
-    assert eng.status(grid).encloses_nothing
+    assert ops.status.status(grid).encloses_nothing
     assert np.abs(evaluated_world(grid)[0] - theirs).max() <= 1e-6 * np.ptp(theirs, 0).max()
 
 
@@ -113,15 +113,15 @@ def test_a_mirror_alone_mirrors_space_and_folds_nothing(ext):
     counts that one warning."""
     ball, lat = _ball(), _lattice(-0.7)
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
-    info = _ops(ext).engine.status(ball)
+    info = _ops(ext).status.status(ball)
     assert evaluated_volume(ball) < 0, "the mesh really is mirrored"
     assert info.mirrored and info.folds == 0, info
     listed = _assert_counts_agree(ext, ball)
     assert len(listed) == 1 and "mirrors space" in listed[0], listed
     assert not any("folds" in t or "inverted" in t for t, _ in _status_lines(ext, ball))
     # A real fold under the mirror is still counted: check it against the Jacobian's own sign.
-    binding = _ops(ext).engine._cache[ball.session_uid].result.binding
-    det = core.jacobian_det(binding, _ops(ext).engine._cache[ball.session_uid].result.points)
+    binding = _ops(ext).bound.states[ball.session_uid].result.binding
+    det = core.jacobian_det(binding, _ops(ext).bound.states[ball.session_uid].result.points)
     assert (det < 0).all()
 
 
@@ -148,7 +148,7 @@ def test_a_refused_correction_shows_the_measured_volume_with_no_check_mark(ext):
     ball, lat = _ball(), _lattice(0.0)
     rest = evaluated_volume(ball)
     assert _bind(ball, lattice=lat, axes="XYZ") == {"FINISHED"}
-    info = _ops(ext).engine.status(ball)
+    info = _ops(ext).status.status(ball)
     measured = 100.0 * evaluated_volume(ball) / rest
     assert measured < 50, "the target (100%) is not met"
     # The panel's figure is the core's float64 measurement of the same float32 output.
@@ -173,7 +173,7 @@ def test_the_panels_figure_is_the_measured_volume_when_the_target_cannot_be_met(
     rest = evaluated_volume(ball)
     assert _bind(ball, lattice=lat, axes="Z", mobility_group="Free",
                  volume_scale=volume_scale) == {"FINISHED"}
-    info = _ops(ext).engine.status(ball)
+    info = _ops(ext).status.status(ball)
     measured = 100.0 * evaluated_volume(ball) / rest
     assert abs(measured - 100.0 * volume_scale) > 1.0, "the target must be out of reach"
     assert abs(info.volume_percent - measured) <= 1e-6 * measured, (info.volume_percent, measured)
@@ -214,10 +214,10 @@ def test_falloff_counts_use_one_definition_of_outside(ext):
     hair = (d > 0) & (d <= tol)                      # on a face, rounded a hair outside
     assert hair.sum() > 20 and outside.sum() > 20 and beyond.sum() > 0, (hair.sum(), outside.sum())
     assert _bind(ob, lattice=lat, axes="XYZ", outside="FALLOFF", falloff_distance=0.25) == {"FINISHED"}
-    info = _ops(ext).engine.status(ob)
+    info = _ops(ext).status.status(ob)
     fading = outside & ~beyond
     assert (info.outside, info.falloff, info.beyond) == (outside.sum(), fading.sum(), beyond.sum()), info
-    words = _ops(ext).engine.outside_message(info, False)
+    words = _ops(ext).status.outside_message(info, False)
     assert words.startswith(f"{outside.sum():,} of {len(local):,} vertices lie outside the lattice "
                             f"(the deformation fades out over {fading.sum():,} of them"), words
     # Said once, beside the Outside setting, not again in Status.
@@ -266,7 +266,7 @@ def test_while_the_kernels_compile_the_first_line_says_so(ext):
     ops = _ops(ext)
     # Met, no warning: Status gives the plain lattice's figure, with a check mark.
     assert [i for t, i in _status_lines(ext, ball) if "%" in t] == ["CHECKMARK"]
-    info = dataclasses.replace(ops.engine.status(ball), kernels="NumPy", awaits_kernels=True)
+    info = dataclasses.replace(ops.status.status(ball), kernels="NumPy", awaits_kernels=True)
     volume = f"volume {info.volume_percent:.3f}% of its input"
     line = ops.status_line.headline
     assert line(info, True, False, kernels="compiling") == (

@@ -12,7 +12,7 @@ from . import extension_harness as eh  # noqa: E402
 from . import fuzz_blender_scene as scene  # noqa: E402
 from .fuzz_blender_machine import BlenderFuzz  # noqa: E402
 from .fuzz_blender_scene import (  # noqa: E402
-    _co, _engine, _evaluated_co, _lattice_co, _lattice_object, _link, _mesh_object,
+    _co, _ops, _evaluated_co, _lattice_co, _lattice_object, _link, _mesh_object,
     _modifier, _op, _tagged, _tris, _volume)
 
 pytestmark = pytest.mark.blender
@@ -91,7 +91,7 @@ def test_regression_flat_lattice_blowup_in_blender(ext):
     co[:, 2] = 0.01
     lat.data.points.foreach_set("co_deform", co.astype(np.float32).ravel())
     bpy.context.scene.frame_set(1)
-    info = _engine().stats(ob)
+    info = _ops().status.stats(ob)
     measured = _measured_percent(ob)
     assert np.isfinite(_evaluated_co(ob)).all()
     said = " ".join([info.get("error") or ""] + list(info.get("warnings") or ()))
@@ -125,7 +125,7 @@ def test_regression_failed_bind_changes_weights(ext):
     ob.vpffd.pin_mode = "NONE"
     scene.frame_set(1)
     assert np.abs(_evaluated_co(ob) - shown).max() <= 1e-6
-    _engine().forget(ob)                        # what a reload does
+    _ops().bound.forget(ob)                        # what a reload does
     scene.frame_set(1)
     assert np.abs(_evaluated_co(ob) - shown).max() <= 1e-6, "the refused Bind changed the shape"
 
@@ -146,10 +146,10 @@ def test_regression_linked_duplicate_of_bound_mesh(ext):
     twin = _link(ob.copy())
     twin.location = (0.6, 0.0, 0.3)
     bpy.context.scene.frame_set(1)
-    eng = _engine()
+    ops = _ops()
     # Each object solves for its own placement (an error on the shared mesh was the other fix
     # allowed, and is not what VP-FFD does: the solver helper is per object).
-    assert [eng.stats(o).get("error") for o in (ob, twin)] == [None, None]
+    assert [ops.status.stats(o).get("error") for o in (ob, twin)] == [None, None]
     err = float(np.abs(_evaluated_co(ob) - alone).max())
     assert err <= 1e-6, f"the original's shape changed by {err:.3g} when its duplicate moved"
 
@@ -178,7 +178,7 @@ def test_fixed_bug_stale_signature(ext, change):
         ob.vpffd.vertex_group = ""
     scene.frame_set(1)
     shown = _evaluated_co(ob)
-    _engine().forget(ob)
+    _ops().bound.forget(ob)
     scene.frame_set(1)
     err = float(np.abs(_evaluated_co(ob) - shown).max())
     assert err <= 1e-6, f"the display is {err:.3g} away from a fresh solve of the same inputs"
@@ -196,17 +196,17 @@ def test_fixed_bug_stale_after_undo(ext):
     ob.vpffd.lattice = None
     bpy.ops.ed.undo_push(message="no lattice")
     scene.frame_set(1)
-    assert "lattice" in (_engine().stats(ob).get("error") or "")
+    assert "lattice" in (_ops().status.stats(ob).get("error") or "")
     bpy.ops.ed.undo()
     ob = _tagged("mesh")[0]
     scene = bpy.context.scene
     scene.frame_set(1)
     assert ob.vpffd.lattice is not None
-    shown, error = _evaluated_co(ob), _engine().stats(ob).get("error")
-    _engine().forget(ob)
+    shown, error = _evaluated_co(ob), _ops().status.stats(ob).get("error")
+    _ops().bound.forget(ob)
     scene.frame_set(1)
     assert np.abs(_evaluated_co(ob) - shown).max() <= 1e-6
-    assert error == _engine().stats(ob).get("error"), f"the panel says {error!r} after Undo"
+    assert error == _ops().status.stats(ob).get("error"), f"the panel says {error!r} after Undo"
 
 
 @pytest.mark.parametrize("attribute", ["vpffd_offset", "vpffd_jacobian"])
@@ -231,7 +231,7 @@ def test_fixed_bug_float32_attribute_overflow(ext, attribute):
     bpy.context.scene.frame_set(1)
     if attribute == "vpffd_offset":     # the offsets live in the modifier's solver helper now
         mod = _modifier().find(ob)
-        buf = _modifier().read_offsets(_modifier().get_input(mod, _modifier().SOLVER_INPUT)).ravel()
+        buf = _ops().solver_helper.read_offsets(_ops().node_group.get_input(mod, _ops().node_group.SOLVER_INPUT)).ravel()
         assert np.isfinite(buf).all(), f"the offsets hold {int((~np.isfinite(buf)).sum())} non-finite values"
         assert np.isfinite(_evaluated_co(ob)).all()
         return

@@ -29,8 +29,8 @@ VOLUME_TOL = 1e-5     # relative
 PANEL_TOL = 1e-6      # relative, panel figure against the measured ratio
 
 
-def _engine(ext):
-    return ext.module.operators.engine
+def _ops(ext):
+    return ext.module.operators
 
 
 # ----------------------------------------------------------------------------------- the scene
@@ -181,7 +181,7 @@ def test_correction_none_equals_a_lattice_modifier_in_the_same_slot(ext, kind):
     moved = 0.0
     for f in FRAMES + (3,):          # and back in time: nothing carries over
         scene.frame_set(f)
-        assert _engine(ext).stats(ours).get("error") is None, _engine(ext).stats(ours)["error"]
+        assert _ops(ext).status.stats(ours).get("error") is None, _ops(ext).status.stats(ours)["error"]
         a, _ = _evaluated(ours)
         b, _ = _evaluated(twin)
         size = float(np.ptp(b, 0).max())
@@ -202,7 +202,7 @@ def test_xyz_keeps_the_volume_that_reaches_the_slot_on_every_frame(ext, kind):
     volumes_in = []
     for f in range(1, 21):
         scene.frame_set(f)
-        info = _engine(ext).stats(ours)
+        info = _ops(ext).status.stats(ours)
         assert info.get("error") is None, info.get("error")
         v_in = _volume(source)
         v_out = _slot_output_volume(ours)
@@ -296,7 +296,7 @@ def test_lattice_edit_mode_follows_live_with_a_mobility_group(ext):
             assert bpy.ops.transform.resize(value=(1.3, 1.0, 0.6)) == {"FINISHED"}
             assert bpy.ops.transform.translate(value=(0.1, 0.0, -0.05)) == {"FINISHED"}
             for ob in (plain, keep):
-                assert _engine(ext).stats(ob).get("error") is None, _engine(ext).stats(ob)["error"]
+                assert _ops(ext).status.stats(ob).get("error") is None, _ops(ext).status.stats(ob)["error"]
             a, b = _evaluated(plain)[0], _evaluated(twin)[0]
             assert np.abs(b - _evaluated(source)[0]).max() > 0.02, "the edit moves the mesh"
             assert np.abs(a - b).max() <= SHAPE_TOL * np.ptp(b, 0).max()
@@ -305,22 +305,22 @@ def test_lattice_edit_mode_follows_live_with_a_mobility_group(ext):
         finally:
             bpy.ops.object.mode_set(mode="OBJECT")
     scene.frame_set(2)
-    assert _engine(ext).stats(keep).get("error") is None
+    assert _ops(ext).status.stats(keep).get("error") is None
     assert abs(_volume(keep) / rest - 1) <= VOLUME_TOL
 
 
 def test_undo_keeps_the_binding(ext):
     """After an undo with unchanged inputs the cached binding is reused (no re-embedding)."""
-    eng = _engine(ext)
+    ops = _ops(ext)
     lat = _lattice()
     ob = _object("Ball")
     assert _bind(ob, lattice=lat, axes="XYZ") == {"FINISHED"}
     bpy.context.scene.frame_set(10)
-    state = eng._cache[ob.session_uid]
+    state = ops.bound.states[ob.session_uid]
     binding = state.binding
     ext.module.operators.handlers.on_undo()
-    assert eng._cache[ob.session_uid].binding is binding
-    assert eng.stats(ob).get("rebound") is False
+    assert ops.bound.states[ob.session_uid].binding is binding
+    assert ops.status.stats(ob).get("rebound") is False
 
 
 def test_save_as_shape_key_holds_the_slots_result(ext):
@@ -349,11 +349,11 @@ def test_a_duplicated_vpffd_modifier_is_reported_and_nothing_is_applied_twice(ex
     with bpy.context.temp_override(object=ob, active_object=ob):
         assert bpy.ops.object.modifier_copy(modifier=ob.modifiers[-1].name) == {"FINISHED"}
     bpy.context.scene.frame_set(14)
-    assert "one VP-FFD modifier per object" in _engine(ext).stats(ob)["error"]
+    assert "one VP-FFD modifier per object" in _ops(ext).status.stats(ob)["error"]
     np.testing.assert_array_equal(_evaluated(ob)[0], _evaluated(source)[0])
     ob.modifiers.remove(ob.modifiers[-1])
     bpy.context.scene.frame_set(15)
-    assert _engine(ext).stats(ob).get("error") is None
+    assert _ops(ext).status.stats(ob).get("error") is None
 
 
 def test_subdivision_before_and_after_the_slot_still_keeps_the_volume(ext):
@@ -376,13 +376,13 @@ def test_subdivision_before_and_after_the_slot_still_keeps_the_volume(ext):
     # The update that finds the faces missing shows the plain deformation and says so.
     bpy.context.view_layer.update()
     assert any("faces that reach VP-FFD are not known yet" in w
-               for w in _engine(ext).stats(ours)["warnings"]), _engine(ext).stats(ours)
+               for w in _ops(ext).status.stats(ours)["warnings"]), _ops(ext).status.stats(ours)
     bpy.context.view_layer.update()
-    assert ext.module.operators.modifier.get_input(ours.modifiers["VP-FFD"], "Tap Faces") is True
+    assert ext.module.operators.node_group.get_input(ours.modifiers["VP-FFD"], "Tap Faces") is True
     scene = bpy.context.scene
     for f in (14, 7):
         scene.frame_set(f)
-        info = _engine(ext).stats(ours)
+        info = _ops(ext).status.stats(ours)
         assert info.get("error") is None and not info["warnings"], info
         assert abs(info["volume_percent"] - 100) <= 100 * VOLUME_TOL
         ours.modifiers["After"].show_viewport = False
@@ -401,7 +401,7 @@ def test_subdivision_before_and_after_the_slot_still_keeps_the_volume(ext):
     assert _bind(pinned, lattice=lat, axes="XYZ", pin_mode="VERTEX", pin_vertex=3,
                  pin_target=target) == {"FINISHED"}
     bpy.context.scene.frame_set(15)
-    info = _engine(ext).stats(pinned)
+    info = _ops(ext).status.stats(pinned)
     assert info.get("error") is None
     assert any("pins are off" in w for w in info["warnings"]), info["warnings"]
     pinned.modifiers[-1].show_viewport = False
@@ -424,7 +424,7 @@ def test_a_geometry_nodes_modifier_that_drops_point_clouds_is_reported(ext):
     ob.modifiers.new("Mesh Only", "NODES").node_group = ng
     source = _input_twin("none")
     bpy.context.scene.frame_set(14)
-    assert "nothing reaches VP-FFD's slot" in _engine(ext).stats(ob)["error"]
+    assert "nothing reaches VP-FFD's slot" in _ops(ext).status.stats(ob)["error"]
     np.testing.assert_array_equal(_evaluated(ob)[0], _evaluated(source)[0])   # undeformed, not stale
 
 
@@ -471,7 +471,7 @@ def test_a_library_override_of_a_linked_character_binds_and_deforms(ext, tmp_pat
     def check(f, body, twin):
         scene = bpy.context.scene
         scene.frame_set(f)
-        assert _engine(ext).stats(body).get("error") is None, _engine(ext).stats(body)["error"]
+        assert _ops(ext).status.stats(body).get("error") is None, _ops(ext).status.stats(body)["error"]
         vp_mod = body.modifiers[-1]
         vp_mod.show_viewport = False
         v_in = _volume(body)
@@ -503,7 +503,7 @@ def test_a_library_override_keeps_the_volume_at_bind(ext, tmp_path):
 
     def check(f, body):
         bpy.context.scene.frame_set(f)
-        info = _engine(ext).status(body)
+        info = _ops(ext).status.status(body)
         assert info.error is None and info.target_from == "bind", info
         assert abs(info.input_percent - 100) > 0.1, info    # the bend changed the volume
         assert abs(_volume(body) / rest - 1) <= VOLUME_TOL, f"frame {f}"

@@ -8,17 +8,17 @@
 
 Method: Hahmann et al., "Volume Preserving FFD for Programmable Graphics Hardware" (2011).
 """
-from . import compiled
+from . import compiled, outside
 from .bases import INTERPOLATIONS
 from .binder import bind
 from .binding import Binding
 from .cage import Cage, box_cage, extrude
 from .cage_binding import CageBinding
-from .falloff import OUTSIDE_MODES, outside_factor
 from .fit import fit_lattice
 from .frame import FrameInputs, FrameResult, Pipeline
 from .jacobian import jacobian_det
 from .mesh import Topology
+from .outside import outside_factor
 from .lattice import Lattice
 from .pointcache import read_mdd, read_pc2, write_mdd, write_pc2
 from .shapes import box, icosphere
@@ -27,4 +27,6 @@ from .volume import signed_volume
 
 __all__ = ["INTERPOLATIONS", "OUTSIDE_MODES", "Binding", "Cage", "CageBinding", "FrameInputs", "FrameResult", "Lattice", "Pipeline", "Solution", "Topology", "bind", "box", "box_cage", "extrude", "icosphere",
            "jacobian_det", "outside_factor", "read_mdd", "read_pc2", "signed_volume", "write_mdd", "write_pc2"]
+#: The names of the lattice's Outside modes (`outside.MODES` is the table).
+OUTSIDE_MODES = outside.names("lattice")
 __version__ = "0.1.0"

@@ -11,8 +11,8 @@ from .cells import TET_DW
 from .embedding import (Elements, barycentric_weights, locate, nearest_boundary,
                         trilinear)
 from .linalg3 import det3, solve3
+from .outside import mode as outside_mode
 
-OUTSIDE_MODES = ("FOLLOW", "STAY")
 _ROW_CHUNK = 256
 _DENSE_MAX_ENTRIES = 8_000_000   # n_ext x N; 32 MB in float32
 
@@ -95,9 +95,7 @@ def bind_cage(cage, rest_verts, tris, influence=None, dtype=np.float64, depth=3,
     """Bind a triangle mesh to `cage` refined `depth` times. See `vpffd_addon.bind`."""
     if not isinstance(cage, Cage):
         raise ValueError(f"bind_cage needs a vpffd_addon.Cage, got {type(cage).__name__}")
-    mode = str(outside).upper()
-    if mode not in OUTSIDE_MODES:
-        raise ValueError(f"outside must be one of {OUTSIDE_MODES}, got {outside!r}")
+    mode = outside_mode(outside, "cage").name      # the Outside modes' table (outside.py)
     b = CageBinding()
     verts, tris, s, labels, rel = prepare(b, cage, rest_verts, tris, influence, dtype, topology)
     V = b.n_verts

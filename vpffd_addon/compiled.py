@@ -5,7 +5,7 @@ along an axis, behind the steps interface of `steps.py`, and the layout of a lat
 stays the reference and the fallback.
 
 Nothing compiles on import: `load()` compiles the kernels, or loads them from numba's cache, and
-from then on `default_steps(binding)` hands solves the compiled steps and `bind_kernels` hands
+from then on `backends.default_steps(binding)` hands solves the compiled steps and `bind_kernels` hands
 binds the layout kernels. numba holds the GIL while it compiles (seconds), so an interactive host
 calls `load()` where a pause does not matter.
 
@@ -263,6 +263,7 @@ class CompiledSteps(Steps):
     rounding, not bit for bit)."""
 
     capabilities = CAPABILITIES
+    backend = "COMPILED"
 
     def __init__(self, binding, dtype=None):
         super().__init__()
@@ -474,10 +475,3 @@ def min_norm(A, r, rcond):
     K["apply_q"](M, tau, u)
     return u
 
-
-def default_steps(binding):
-    """The steps a solve uses when none are given: compiled ones for a lattice binding once
-    `load()` succeeded, else the NumPy ones."""
-    if _state["kernels"] is not None and getattr(binding, "params", None) is not None:
-        return CompiledSteps(binding)
-    return NumpySteps(binding)

@@ -1,5 +1,6 @@
-"""What the deformation does outside the lattice's rest box (docs/design.md, "Outside the
-lattice"): a per-vertex factor on the influence, computed from the positions as they enter the
+"""The distance and the profile behind the lattice's Outside modes (`outside.py` holds the table
+of modes): what the deformation does outside the lattice's rest box (docs/design.md, "Outside the
+lattice") is a per-vertex factor on the influence, computed from the positions as they enter the
 deformer, never from deformed ones, so the deformation stays affine in the control points and the
 closed-form volume correction applies unchanged.
 
@@ -10,12 +11,10 @@ closed-form volume correction applies unchanged.
   profile w(t) = 1 - t^2 (3 - 2 t) on [0, 1]: w = 1 and w' = 0 at the box, w = 0 and w' = 0 at the
   falloff distance. The displacement w F (F Blender's extrapolation) then has a continuous slope
   across the box's faces (w' = 0 there) and vanishes smoothly at the distance.
-- INSIDE: 1 inside the box, 0 outside it (beyond a millionth of its size per axis).
+- STAY (earlier INSIDE): 1 inside the box, 0 outside it (beyond a millionth of its size per axis).
 """
 import numpy as np
 
-#: The modes, in the order the extension's setting lists them.
-OUTSIDE_MODES = ("FOLLOW", "FALLOFF", "INSIDE")
 #: Excess over the box (in lattice-size units) below which a vertex counts as inside.
 INSIDE_SLACK = 1e-6
 
@@ -38,20 +37,3 @@ def profile(t):
     """(V,) the falloff profile at t (V,) >= 0: 1 - t^2 (3 - 2 t) on [0, 1], 0 beyond."""
     t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0)
     return 1.0 - t * t * (3.0 - 2.0 * t)
-
-
-def outside_factor(lattice, verts, mode="FOLLOW", distance=0.5):
-    """(V,) factor on each vertex's influence for the outside `mode` (see the module's words);
-    `distance`: the falloff distance in lattice-size units (FALLOFF only, > 0)."""
-    mode = str(mode).upper()
-    if mode not in OUTSIDE_MODES:
-        raise ValueError(f"outside must be one of {', '.join(OUTSIDE_MODES)}, got {mode!r}")
-    if mode == "FOLLOW":
-        return np.ones(len(verts))
-    d = box_distance(lattice, verts)
-    if mode == "INSIDE":
-        return (d <= INSIDE_SLACK).astype(np.float64)
-    distance = float(distance)
-    if not (np.isfinite(distance) and distance > 0):
-        raise ValueError(f"the falloff distance must be a positive number, got {distance!r}")
-    return profile(d / distance)

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import compiled, lattice_eval, parallel
+from . import backends, compiled, lattice_eval, parallel
 from .binder import bind
 from .cage import Cage
-from .falloff import outside_factor
+from .outside import mode as outside_mode, outside_factor
 from .jacobian import jacobian_det
 from .lattice import Lattice
 from .linalg3 import affine, affine_inverse, det3
@@ -44,10 +44,12 @@ class FrameInputs:
     cage_depth, cage_outside: for a `Cage`.
     dtype: the binding's float type.
     use_compiled: bind with the compiled kernels once they are loaded (bit for bit NumPy's
-        binding); False binds with NumPy, the reference. The solve's kernels are the solver's.
-    outside, falloff: what a lattice does to positions outside its rest box (`falloff.py`:
-        "FOLLOW" as Blender's Lattice modifier, "FALLOFF" fading out over `falloff` lattice-size
-        units, "INSIDE" not at all); a factor on the influence, from the positions as they enter.
+        binding), and solve with them where no solver is given (`backends.choose`); False binds
+        and solves with NumPy, the reference. With a solver, the correction's kernels are its.
+    outside, falloff: what a lattice does to positions outside its rest box (`outside.py`, the
+        table of modes: "FOLLOW" as Blender's Lattice modifier, "FALLOFF" fading out over
+        `falloff` lattice-size units, "STAY" not at all); a factor on the influence, from the
+        positions as they enter.
     target_volumes: the volume to keep, in the object's space, instead of the volume that reaches
         the slot (None): one number, or one per island with `islands` (e.g. the volume at Bind);
         volume_scale multiplies it. When its count does not match the islands that reach the
@@ -96,6 +98,7 @@ class FrameResult:
     reference_volume: float = None  #: the volume aimed at before volume_scale: the input's, or
     #: the given target's (lattice space)
     target_given: bool = False     #: whether the given target_volumes were kept (not the input's)
+    backend: str = None            #: the backend whose steps solved (`backends.py`; None: no solve)
 
 
 def _affine(points, mat):
@@ -152,10 +155,10 @@ class Pipeline:
         self._last_space = (M.copy(), X.copy(), verts)
         return verts
 
-    def _topology(self, tris, n_verts):
+    def _topology(self, tris, n_verts, use_compiled=True):
         t = self.topology
         if t is None or t.n_verts != n_verts or not t.matches(tris):
-            t = self.topology = Topology(tris, n_verts, compiled.topology_kernels())
+            t = self.topology = Topology(tris, n_verts, compiled.topology_kernels() if use_compiled else None)
         return t
 
     def _embed(self, inp, verts, influence):
@@ -173,7 +176,7 @@ class Pipeline:
                 and np.array_equal(old[2], influence) and self.topology is not None
                 and self.topology.matches(inp.tris)):
             return self.binding, False
-        topology = self._topology(inp.tris, len(verts))
+        topology = self._topology(inp.tris, len(verts), inp.use_compiled)
         extra = dict(depth=inp.cage_depth, outside=inp.cage_outside) if cage else {}
         self.binding = None   # never keep a binding whose inputs are not all in its key
         self.binding = bind(lat, verts, topology.tris, influence=influence, dtype=inp.dtype,
@@ -202,7 +205,7 @@ class Pipeline:
             lw = lattice_eval.interpolate(lat, verts, np.asarray(inp.lattice_weights, np.float64))
             influence = weights * (weights * inp.strength) * lw
         factor = None
-        if isinstance(lat, Lattice) and str(inp.outside).upper() != "FOLLOW":
+        if isinstance(lat, Lattice) and outside_mode(inp.outside).factor is not None:
             factor = outside_factor(lat, verts, inp.outside, inp.falloff)
             influence = influence * factor
         # Strength scales every displacement alike: it scales the control points' displacement.
@@ -218,6 +221,9 @@ class Pipeline:
             positions, still = _keep_still(_affine(out, back), inp.positions, influence)
             return FrameResult(positions=positions, points=P_used, outside=outside, still=still)
         binding, rebound = self._embed(inp, verts, influence)
+        # Without a solver of the caller's, and for the plain deformation, the CPU solves: with
+        # NumPy alone when use_compiled is off (the reference path), else the registry's choice.
+        cpu_steps = backends.choose("CPU" if inp.use_compiled else "NUMPY", binding)[0].steps
         warnings = []
         solution = None
         reference, target_given = binding.rest_volume, False
@@ -237,7 +243,7 @@ class Pipeline:
                                     "volume on this frame")
             try:
                 solution = (self.solver(binding, P_used, options) if self.solver is not None
-                            else binding.solve(P_used, **options))
+                            else binding.solve(P_used, steps=cpu_steps, **options))
             except ValueError as exc:
                 # No correction is possible on this frame: it shows the plain deformation, as the
                 # Lattice modifier would, and says why; the next frame is solved afresh.
@@ -245,9 +251,11 @@ class Pipeline:
         if solution is not None:
             out, used, volume, plain = solution.verts, solution.points, solution.volume, solution.plain_volume
             warnings.extend(solution.warnings)
+            backend = solution.backend
         else:
-            sol = binding.solve(P_used, axes="", preserve_volume=False)
+            sol = binding.solve(P_used, axes="", preserve_volume=False, steps=cpu_steps)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
+            backend = sol.backend
         positions, still = _keep_still(_affine(out, back), inp.positions, influence)
         falloff = 0 if factor is None else int(((factor > 0) & (factor < 1)).sum())
         beyond = 0 if factor is None else int((factor == 0).sum())
@@ -255,7 +263,7 @@ class Pipeline:
                            volume=volume, plain_volume=plain, warnings=tuple(warnings),
                            binding=binding, rebound=rebound, solution=solution,
                            outside=int(binding.n_outside), falloff=falloff, beyond=beyond, still=still,
-                           reference_volume=reference, target_given=target_given)
+                           reference_volume=reference, target_given=target_given, backend=backend)
 
     @staticmethod
     def folds(result):

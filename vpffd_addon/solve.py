@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import tolerances as tol
-from .compiled import default_steps, min_norm
+from .backends import default_steps
+from .compiled import min_norm
 from .steps import CAPABILITIES
 from .volume import face_volumes
 
@@ -34,6 +35,7 @@ class Solution:
     island_target_volumes: np.ndarray = None  #: (k,) their targets
     warnings: tuple = ()              #: constraints that could not be met, in words
     seconds: float = 0.0              #: wall time of the solve
+    backend: str = None               #: the backend whose steps ran (`backends.py`): NUMPY, COMPILED, GPU
 
 
 def parse_directions(axes, directions):
@@ -449,8 +451,9 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     pins: (vertex index, (x, y, z) target) pairs; each pinned vertex lands on its target along the
         correction directions (Problem 2, eq. 21, any number of pins).
     islands: keep the volume of each connected component separately.
-    steps: a callable ``steps(binding)`` giving the per-slot work (default `compiled.default_steps`:
-        the compiled steps once `compiled.load()` succeeded, else `steps.NumpySteps`; or the GPU's);
+    steps: a callable ``steps(binding)`` giving the per-slot work (default
+        `backends.default_steps`: the compiled steps once `compiled.load()` succeeded, else
+        `steps.NumpySteps`; or the GPU's);
         options it cannot do raise ValueError before anything is computed.
     Returns a `Solution`. Raises ValueError for bad input, or when the volume must change but cannot
     along any direction; never returns NaN.
@@ -589,4 +592,4 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         plain_volume=float(plain.sum()), directions=dirs,
         island_volumes=st.volumes.copy() if islands else None,
         island_target_volumes=targets if islands else None,
-        warnings=tuple(warnings), seconds=time.perf_counter() - t0)
+        warnings=tuple(warnings), seconds=time.perf_counter() - t0, backend=getattr(st.k, "backend", None))

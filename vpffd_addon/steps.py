@@ -55,6 +55,7 @@ class NumpySteps(Steps):
     """The steps on the CPU, for a `Binding` or a `CageBinding`."""
 
     capabilities = CAPABILITIES
+    backend = "NUMPY"       #: the name its backend is registered under (`backends.py`)
 
     def __init__(self, binding):
         super().__init__()

@@ -30,8 +30,8 @@ def check(name, ok, detail=""):
     CHECKS.append([name, bool(ok), str(detail)])
 
 
-def engine():
-    name = next(m for m in sys.modules if m.endswith(".operators.engine") and "vpffd" in m)
+def operators():
+    name = next(m for m in sys.modules if m.endswith(".operators") and "vpffd" in m)
     return sys.modules[name]
 
 
@@ -161,7 +161,7 @@ def info_log():
 
 
 def session():
-    eng = engine()
+    ops = operators()
     prefs = bpy.context.preferences
     prefs.view.show_splash = False
     yield 0.5
@@ -186,7 +186,7 @@ def session():
     check("the demo frames itself: camera view, the balls in view and not small",
           camera and inside and share >= 0.25, (camera, share, inside, [o.name for o in demo_objects]))
     r, _ = ratio(ball)
-    info = eng.status(ball)
+    info = ops.status.status(ball)
     check("squash keeps the volume (evaluated mesh)", abs(r - 1) <= VOLUME_TOL, r)
     check("without numba (Debian's Blender, the universal package) NumPy solves and the panel "
           "says why", info.kernels == "NumPy" and "numba is not installed" in (info.kernels_why or ""),
@@ -198,12 +198,12 @@ def session():
     # Show Corrected Lattice: the overlay draws in the viewport.
     ball.vpffd.show_overlay = True
     yield 0.5
-    check("overlay has the corrected lattice", eng.overlay_geometry(ball) is not None)
+    check("overlay has the corrected lattice", ops.overlay.overlay_geometry(ball) is not None)
     yield from screenshot("overlay")
     ball.vpffd.enabled = False                # switched off: nothing stale is drawn or shown
     yield 0.5
-    info = eng.status(ball)
-    check("switched off: no overlay and no figures", eng.overlay_geometry(ball) is None
+    info = ops.status.status(ball)
+    check("switched off: no overlay and no figures", ops.overlay.overlay_geometry(ball) is None
           and info.volume_percent is None and info.switched_off, info)
     ball.vpffd.enabled = True
     ball.vpffd.show_overlay = False
@@ -215,13 +215,13 @@ def session():
     select_only(ball)
     op("object.hide_view_set")
     yield 0.5
-    check("hidden: no error in the panel", eng.status(ball).error is None, eng.status(ball).error)
+    check("hidden: no error in the panel", ops.status.status(ball).error is None, ops.status.status(ball).error)
     op("object.hide_view_clear")
     yield 0.5
     _, after = ratio(ball)
     check("unhidden (Alt+H): the corrected shape is back", float(np.abs(after - before).max()) <= 1e-6,
           float(np.abs(after - before).max()))
-    check("unhidden: no error in the panel", eng.status(ball).error is None, eng.status(ball).error)
+    check("unhidden: no error in the panel", ops.status.status(ball).error is None, ops.status.status(ball).error)
     select_only(ball)
 
     # Playback (Space): every frame shown keeps the volume.
@@ -302,7 +302,7 @@ def session():
     bm = bmesh.from_edit_mesh(ball.data)
     edited = np.array([tuple(v.co) for v in bm.verts], np.float32)
     co, tris = evaluated(ball)
-    info = eng.status(ball)
+    info = ops.status.status(ball)
     r = volume(co, tris) / volume(edited, tris)
     check("mesh Edit Mode: the edit shows deformed, the volume of the mesh as edited kept",
           abs(r - 1) <= VOLUME_TOL and float(np.abs(co - shown).max()) > 1e-2, (r, float(np.abs(co - shown).max())))
@@ -321,8 +321,8 @@ def session():
     # Ctrl+A on the VP-FFD modifier (Blender's own Apply): the mesh keeps what was shown.
     ball = bpy.data.objects[ball_name]
     check("after undo and redo the panel matches the mesh",
-          abs(eng.status(ball).volume_percent / 100 - abs(ratio(ball)[0])) <= 1e-6,
-          (eng.status(ball).volume_percent, ratio(ball)[0]))
+          abs(ops.status.status(ball).volume_percent / 100 - abs(ratio(ball)[0])) <= 1e-6,
+          (ops.status.status(ball).volume_percent, ratio(ball)[0]))
     lattice = ball.vpffd.lattice
     scene = bpy.context.window_manager.windows[0].scene
     scene.frame_set(18)
@@ -367,7 +367,7 @@ def session():
     ball = bpy.data.objects[ball_name]
     co, _ = evaluated(ball)
     own, _ = mesh_arrays(ball.data)
-    info = eng.status(ball)
+    info = ops.status.status(ball)
     check("deleted lattice: the mesh shows undeformed", float(np.abs(co - own).max()) <= 1e-6,
           float(np.abs(co - own).max()))
     check("deleted lattice: the panel says so", "deleted" in (info.error or ""), info.error)
@@ -378,7 +378,7 @@ def session():
         yield 0.8
         ball = bpy.data.objects[ball_name]
         r, now = ratio(ball)
-        error = eng.status(ball).error
+        error = ops.status.status(ball).error
         if expect:
             check(f"after Delete, {step}: linked again in one step, as Blender's Lattice modifier",
                   linked() == (True, True) and error is None, (linked(), error))
@@ -402,8 +402,8 @@ def session():
     ball = bpy.data.objects[ball_name]
     r, now = ratio(ball)
     check("undo of Unbind: bound, the same corrected shape", ball.vpffd.is_bound
-          and float(np.abs(now - shown).max()) <= 1e-6 and eng.status(ball).error is None,
-          (ball.vpffd.is_bound, float(np.abs(now - shown).max()), eng.status(ball).error))
+          and float(np.abs(now - shown).max()) <= 1e-6 and ops.status.status(ball).error is None,
+          (ball.vpffd.is_bound, float(np.abs(now - shown).max()), ops.status.status(ball).error))
 
     # A bake in progress, on the cage demo (slow enough to be seen).
     op("object.vpffd_demo_squeezed_tube")
@@ -434,8 +434,8 @@ def session():
     tube = bpy.data.objects[tube_name]
     check("undo of a bake: the live solve plays, the volume kept",
           playing(tube)[-1] == ("NODES", True) and all(t != "MESH_CACHE" or not on for t, on in playing(tube))
-          and eng.status(tube).error is None and eng.status(tube).volume_percent is not None,
-          (baked, playing(tube), eng.status(tube).error))
+          and ops.status.status(tube).error is None and ops.status.status(tube).volume_percent is not None,
+          (baked, playing(tube), ops.status.status(tube).error))
     op("ed.redo")
     yield 0.8
     tube = bpy.data.objects[tube_name]
@@ -518,7 +518,7 @@ def session():
     r, _ = ratio(arm)                         # bound in the rest pose: the mesh's own volume
     alone = next(ob for ob in scene.objects if ob.type == "MESH" and ob.name.startswith("Arm Armature"))
     r_alone = volume(*evaluated(alone)) / volume(*mesh_arrays(alone.data))
-    info = eng.status(arm)
+    info = ops.status.status(arm)
     check("bent arm: VP-FFD keeps the volume at Bind, the Armature alone loses it",
           abs(r - 1) <= VOLUME_TOL and r_alone < 0.95 and info.target_from == "bind",
           (r, r_alone, info.target_from))
@@ -527,7 +527,7 @@ def session():
           and abs(info.input_percent / 100 - r_alone) <= 1e-5, (info.volume_percent, info.input_percent, r, r_alone))
     arm.vpffd.show_overlay = True             # the corrected lattice and where the falloff ends
     yield 0.5
-    check("bent arm: the overlay draws the falloff's box", eng.falloff_geometry(arm) is not None)
+    check("bent arm: the overlay draws the falloff's box", ops.overlay.falloff_geometry(arm) is not None)
     yield from screenshot("arm")
 
     # Back to the user's own scene (the scene selector): its viewport shows the view it had

@@ -1,0 +1,92 @@
+"""The solver helper of a VP-FFD modifier: a hidden vertex-only mesh object, named in the
+modifier's Solver input, whose vertex positions are the offsets the node group adds to the slot's
+input (docs/stack.md). It also keeps what Bind saves (saved_data.py)."""
+import bpy
+import numpy as np
+
+from .node_group import SOLVER_INPUT, get_input, set_input
+
+
+HELPER_TAG = "vpffd_solver"  # custom property of helper objects: the name of their mesh object
+
+
+def _new_helper(obj):
+    mesh = bpy.data.meshes.new(f".VP-FFD solver {obj.name}")
+    ob = bpy.data.objects.new(f".VP-FFD solver {obj.name}", mesh)
+    ob[HELPER_TAG] = obj.name
+    ob.hide_viewport = ob.hide_render = True
+    return ob
+
+
+def free_helper(ob):
+    if ob is None or ob.get(HELPER_TAG) is None:
+        return
+    if ob.users == 0:        # still used when a duplicate's modifier shares it
+        _remove_helper(ob)
+
+
+def _remove_helper(ob):
+    mesh = ob.data
+    bpy.data.objects.remove(ob)
+    if mesh is not None and mesh.users == 0:
+        bpy.data.meshes.remove(mesh)
+
+
+def free_unused_helpers(obj):
+    """Remove the solver helpers made for `obj` that no modifier uses any more (its VP-FFD
+    modifier was removed or applied by Blender, which leaves the helper behind)."""
+    tagged = [o for o in bpy.data.objects if o.get(HELPER_TAG) == obj.name]
+    if not tagged:
+        return
+    # Blender's count can keep a user for the removed modifier's object input: ask who uses it.
+    users = bpy.data.user_map(subset=tagged)
+    for ob in tagged:
+        if not users.get(ob):
+            _remove_helper(ob)
+
+
+def helper(obj, mod, exclusive_of=()):
+    """The solver helper of `obj`'s VP-FFD modifier `mod` (`modifier.find(obj)`; None gives
+    None), made when missing or when another object's modifier uses the same one (`exclusive_of`:
+    helpers already claimed; duplicates of a bound object copy the modifier and with it the
+    helper)."""
+    if mod is None:
+        return None
+    ob = get_input(mod, SOLVER_INPUT)
+    if ob is None or ob.type != "MESH" or ob.get(HELPER_TAG) is None or ob in exclusive_of:
+        shared = ob if ob is not None and ob.get(HELPER_TAG) is not None else None
+        ob = _new_helper(obj)
+        if shared is not None:          # a duplicate keeps what was saved at Bind (pins, cage)
+            for key in shared.keys():
+                if key != HELPER_TAG:
+                    ob[key] = shared[key]
+        set_input(mod, SOLVER_INPUT, ob)
+    return ob
+
+
+def write_offsets(helper_ob, offsets):
+    """Store (V, 3) float32 offsets as the helper's vertex positions (resized when V changed)."""
+    mesh = helper_ob.data
+    values = np.ascontiguousarray(offsets, dtype=np.float32).reshape(-1, 3)
+    if len(mesh.vertices) != len(values):
+        mesh.clear_geometry()
+        mesh.vertices.add(len(values))
+    position = mesh.attributes.get("position")
+    if position is not None and len(position.data) == len(values):
+        position.data.foreach_set("vector", values.ravel())
+    else:
+        mesh.vertices.foreach_set("co", values.ravel())
+    mesh.update()
+
+
+def read_offsets(helper_ob):
+    """(V, 3) float32 offsets currently stored in the helper (empty when none)."""
+    if helper_ob is None:
+        return np.zeros((0, 3), np.float32)
+    mesh = helper_ob.data
+    out = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", out)
+    return out.reshape(-1, 3)
+
+
+# ------------------------------------------------------------------------------------ the tap

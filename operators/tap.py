@@ -1,0 +1,108 @@
+"""Reading the tap: what reached the VP-FFD slot (positions, weights and, when asked, the
+triangles), from the end of the evaluated object's stack (node_group.py makes it)."""
+import numpy as np
+
+from .node_group import (CORNER_ATTRIBUTES, COUNT_ATTRIBUTE, FACE_ATTRIBUTE, PACK, PACKED_POSITIONS,
+                         PACKED_WEIGHTS, TAP_ATTRIBUTE, WEIGHT_ATTRIBUTE)
+
+
+def _tap_cloud(ob_eval, depsgraph):
+    """(a point cloud that carries the tap or None, an object to keep alive while it is read,
+    whether it is the instances' point cloud, i.e. the packed tap of Blender 4.4+)."""
+    get = getattr(ob_eval, "evaluated_geometry", None)
+    if get is not None:        # newer Blender: the object's own geometry set
+        try:
+            geometry = get()
+        except TypeError:      # tagged for an evaluation that has not run yet
+            return None, None, False
+        instances = geometry.instances_pointcloud()
+        if instances is not None and instances.attributes.get(TAP_ATTRIBUTE) is not None:
+            return instances, (geometry, instances), True
+        return geometry.pointcloud, geometry, False
+    original = ob_eval.original
+    for inst in depsgraph.object_instances:
+        # Before that, the non-mesh components of a mesh object appear as instances of it.
+        if inst.is_instance and inst.object.type == "POINTCLOUD" and inst.parent is not None \
+                and inst.parent.original == original:
+            return inst.object.data, None, False
+    return None, None, False
+
+
+def _packed_tap(attrs, n):
+    """(is_tap (n,) bool, positions (V, 3) float32, weights (V,) float32) of a packed instance
+    tap (see PACK), or None when its attributes are missing."""
+    mark, count = attrs.get(TAP_ATTRIBUTE), attrs.get(COUNT_ATTRIBUTE)
+    if mark is None or count is None:
+        return None
+    is_tap = np.empty(n, bool)
+    mark.data.foreach_get("value", is_tap)
+    m = int(is_tap.sum())
+    if m == 0:
+        return None
+    counts = np.empty(n, np.int32)
+    count.data.foreach_get("value", counts)
+    V = int(counts[is_tap][0])
+    if not 0 <= V <= m * PACK:
+        return None
+    # Straight into (PACK, n, ...) buffers, then one transposed copy: vertex PACK * i + k is
+    # row i of layer k.
+    vec, val = np.empty((PACK, n, 3), np.float32), np.empty((PACK, n), np.float32)
+    for k in range(PACK):
+        p, q = attrs.get(PACKED_POSITIONS[k]), attrs.get(PACKED_WEIGHTS[k])
+        if p is None or q is None:
+            return None
+        p.data.foreach_get("vector", vec[k].reshape(-1))
+        q.data.foreach_get("value", val[k])
+    if m < n:           # the face tap, or instances that a later modifier joined
+        vec, val = vec[:, is_tap], val[:, is_tap]
+    co = vec.transpose(1, 0, 2).reshape(-1, 3)
+    w = val.T.reshape(-1)
+    return is_tap, co[:V], w[:V]
+
+
+def read_tap(ob_eval, depsgraph):
+    """(positions (V, 3) float32, weights (V,) float32, triangles (F, 3) int64 or None) of the
+    geometry that reached the VP-FFD slot in this evaluation, in the object's space; the
+    triangles only while the modifier's Tap Faces input is on. None when no tap reached the end of
+    the stack (the modifier is off, or a later Geometry Nodes modifier dropped point clouds)."""
+    cloud, _alive, from_instances = _tap_cloud(ob_eval, depsgraph)
+    if cloud is None:
+        return None
+    attrs = cloud.attributes
+    if from_instances:
+        n = len(attrs.get(TAP_ATTRIBUTE).data)
+        packed = _packed_tap(attrs, n)
+        if packed is None:
+            return None
+        is_tap, co, w = packed
+    else:
+        position, weight, mark = attrs.get("position"), attrs.get(WEIGHT_ATTRIBUTE), attrs.get(TAP_ATTRIBUTE)
+        if position is None or mark is None:
+            return None
+        n = len(position.data)
+        co = np.empty(n * 3, np.float32)
+        position.data.foreach_get("vector", co)
+        w = np.ones(n, np.float32)
+        if weight is not None and weight.data_type == "FLOAT":
+            weight.data.foreach_get("value", w)
+        is_tap = np.empty(n, bool)
+        mark.data.foreach_get("value", is_tap)
+    co = co.reshape(-1, 3)
+    tris = None
+    face_mark = attrs.get(FACE_ATTRIBUTE)
+    if face_mark is not None:
+        is_face = np.empty(n, bool)
+        face_mark.data.foreach_get("value", is_face)
+        corners = []
+        for name in CORNER_ATTRIBUTES:
+            attr = attrs.get(name)
+            if attr is None:
+                break
+            c = np.empty(n, np.int32)
+            attr.data.foreach_get("value", c)
+            corners.append(c[is_face])
+        if len(corners) == 3:
+            tris = np.stack(corners, 1).astype(np.int64)
+    if not from_instances and not is_tap.all():  # the face tap, or points a later modifier joined
+        co, w = co[is_tap], w[is_tap]
+    return co, w, tris

@@ -1,0 +1,189 @@
+"""The update of bound objects, from the depsgraph handler (`update_scene`) or an operator
+(`update`): read what Blender hands over (`frame_read.read`), evaluate the core's pipeline on it
+(`_evaluate`), publish the result (`publish.publish`). Never raises into Blender."""
+import dataclasses
+import time
+
+import numpy as np
+
+from . import compiled_backend, modifier
+from .bound import Bound, states
+from .frame_read import read
+from .publish import count_folds, encloses_nothing, publish, zero_offsets
+from .release import release
+from .status import set_status, status
+
+
+def update(obj, depsgraph, force=False):
+    """Solve the current frame for a bound object and write its offsets. Never raises: problems
+    go to the panel (`status(obj).error`) and the console. Returns True when a solve ran.
+    `force` solves even when the inputs did not change and the modifier is switched off (Bind,
+    Apply, Check Folds and Bake need the solve)."""
+    # Overflow is detected on the results and reported in words; NumPy's own warnings would only
+    # repeat it on the console for every frame.
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        return _update(obj, depsgraph, force)
+
+
+def _update(obj, depsgraph, force, helpers_taken=None):
+    """One update in three steps: read what Blender hands over (`read`), evaluate the core's
+    pipeline on it (`_evaluate`), publish the result: offsets, panel figures, overlay (`publish`)."""
+    state = None
+    try:
+        mod = _slot_to_solve(obj, depsgraph, force)
+        if mod is None:
+            return False
+        state = states.get(obj.session_uid)
+        if state is None:
+            state = states[obj.session_uid] = Bound()
+        frame = read(obj, state, mod, depsgraph, helpers_taken)
+        if frame is None or (not force and _unchanged(state, frame)):
+            return False
+        t0 = time.perf_counter()
+        result = _evaluate(state, frame)
+        publish(obj, state, frame, result, t0)
+        return True
+    except Exception as exc:  # a handler must never raise into Blender
+        try:
+            zero_offsets(obj, state)   # a defined result: the slot's input, undeformed
+        except Exception:
+            pass
+        if state is not None:
+            state.signature = None
+        set_status(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
+        return False
+
+
+def update_scene(scene, depsgraph):
+    taken = set()   # each object's modifier gets a solver helper of its own (duplicates share one)
+    for ob in bound_objects(scene):
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            _update(ob, depsgraph, False, taken)
+
+
+def request_update(obj):
+    """Settings changed: have the next depsgraph update recompute this object."""
+    if getattr(obj, "type", None) == "MESH" and obj.vpffd.is_bound:
+        obj.update_tag()
+
+
+# ---------------------------------------------------------------------------------------- bind
+
+
+def bound_objects(scene):
+    return [ob for ob in scene.objects if ob.type == "MESH" and ob.vpffd.is_bound]
+
+
+def _evaluated_here(obj, depsgraph):
+    """Whether `depsgraph` evaluates `obj` at all: visible in its view layer (the viewport), or
+    enabled for renders (a render evaluates what renders)."""
+    try:
+        if depsgraph.mode == "RENDER":
+            return _renders(obj, depsgraph.view_layer)
+        return bool(obj.visible_get(view_layer=depsgraph.view_layer))
+    except (ReferenceError, RuntimeError, TypeError):
+        return True
+
+
+def _renders(obj, view_layer):
+    """Whether a render of `view_layer` renders `obj`: not hidden from renders itself, and in a
+    collection that is neither excluded from the view layer nor hidden from renders, nor below
+    one that is."""
+    if obj.hide_render:
+        return False
+    stack = [view_layer.layer_collection]
+    while stack:
+        layer_collection = stack.pop()
+        if layer_collection.exclude or layer_collection.collection.hide_render:
+            continue
+        if layer_collection.collection.objects.get(obj.name) == obj:
+            return True
+        stack.extend(layer_collection.children)
+    return False
+
+
+def _slot_to_solve(obj, depsgraph, force):
+    """The VP-FFD modifier of `obj` when this evaluation should solve it; else None, with the
+    panel told why (removed, switched off, hidden)."""
+    if not obj.vpffd.is_bound:
+        return None
+    mod = modifier.find(obj)
+    rendering = depsgraph.mode == "RENDER"
+    if mod is None:
+        if not rendering:
+            # Removed (X on the modifier) or applied (Ctrl+A): as with any modifier, the object
+            # is no longer deformed by it. Its settings stay for a later Bind.
+            release(obj)
+        return None
+    if not force and not (mod.show_render if rendering else mod.show_viewport):
+        if not rendering:
+            # Switched off in the viewport: the panel says so instead of an error or figures of
+            # an earlier solve; switching it on solves again.
+            _pause(obj, switched_off=True)
+        return None  # switched off for this evaluation, like any modifier
+    if not force and not _evaluated_here(obj, depsgraph):
+        # Hidden (H, Disable in Viewports, a hidden or excluded collection): Blender does not
+        # evaluate it, so nothing reaches the slot. Keep the offsets shown last and solve again
+        # when it is shown: it comes back as it was, with no error.
+        if not rendering:
+            _pause(obj, paused="the object is hidden: VP-FFD solves again when it is shown")
+        return None
+    return mod
+
+
+def _pause(obj, **why):
+    """Nothing is solved now (`why`: paused=text or switched_off=True): the panel shows no
+    figures, since they would be those of another state; the next update solves again."""
+    set_status(obj, **why)
+    state = states.get(obj.session_uid)
+    if state is not None:
+        state.signature = None
+
+
+def _unchanged(state, frame):
+    """Whether `frame` has the inputs of the last solve (its result is already shown)."""
+    return frame.signature.matches(state.signature)
+
+
+def _evaluate(state, frame):
+    """The core's pipeline on `frame` (its solver picks the CPU or the GPU; on the CPU, the
+    compiled kernels once they are loaded): a vp.FrameResult.
+
+    An open surface with no volume about the lattice's centre (a plane through it) has no volume
+    to keep: aiming at zero would bend it into another shape. It deforms as the Lattice modifier
+    does (pins still hold). Such a mesh stays so from frame to frame, so once found the plain
+    deformation is tried first and the correction only when the mesh no longer is one."""
+    if state.settings.backend != "NUMPY":
+        compiled_backend.start()    # once per session; NumPy solves until the kernels are ready
+    inputs = frame.inputs
+    plain = dataclasses.replace(inputs, axes="", directions=None, correct=bool(inputs.pins))
+    state.backend = ("CPU", "")
+    if inputs.correct and state.encloses_nothing:
+        result = state.pipeline.evaluate(plain)
+        if encloses_nothing(result):
+            return result
+        state.backend = ("CPU", "")
+    result = state.pipeline.evaluate(inputs)
+    state.encloses_nothing = inputs.correct and encloses_nothing(result)
+    if state.encloses_nothing:
+        state.backend = ("CPU", "")
+        result = state.pipeline.evaluate(plain)
+    return result
+
+
+def check_folds(obj, depsgraph):
+    """Solve the current frame and count folds whatever the mesh size; None on error."""
+    if not update(obj, depsgraph, force=True) and status(obj).error:
+        return None
+    state = states.get(obj.session_uid)
+    if state is None or state.result is None or state.result.binding is None:
+        return None
+    info = status(obj)
+    info.folds = count_folds(state.result.binding, state.result.points, state.orientation)
+    return info.folds
+
+
+def slot_output(obj):
+    """(V, 3) float32 positions the VP-FFD slot gave in the last solve (object space), or None."""
+    state = states.get(obj.session_uid)
+    return None if state is None else state.output

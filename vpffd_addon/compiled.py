@@ -236,6 +236,15 @@ def _smoke_solve(kernels, dtype):
     kernels["apply_q"](M, tau, u)
     if not np.allclose(u, np.linalg.lstsq(A, np.ones(3), rcond=None)[0], rtol=0, atol=1e-12):
         raise RuntimeError("the compiled QR's least-norm step differs from LAPACK's")
+    L = np.array([[2.0, 0.0, 0.0], [1.0, 0.5, 0.0], [-1.0, 3.0, 4.0]])
+    x, xt = np.empty(3), np.empty(3)
+    kernels["triangular_solve"](L, np.arange(1.0, 4.0), x, False)
+    kernels["triangular_solve"](L, np.arange(1.0, 4.0), xt, True)
+    s = np.linalg.svd(L, compute_uv=False)
+    if not (np.allclose(L @ x, np.arange(1.0, 4.0), rtol=0, atol=1e-12)
+            and np.allclose(L.T @ xt, np.arange(1.0, 4.0), rtol=0, atol=1e-12)
+            and abs(kernels["condition"](L, 12) / (s[0] / s[-1]) - 1) < 0.05):
+        raise RuntimeError("the compiled triangular solves or condition estimate differ from LAPACK's")
     out = np.empty((4, 3))
     kernels["to_verts"](X, slot, np.zeros((1, 3)), np.zeros(4, np.int64), out, 0, 4)
     if not np.array_equal(out, X.T.astype(float)):
@@ -450,8 +459,10 @@ def min_norm(A, r, rcond):
     all be met, singular values under rcond times the largest cut (as `numpy.linalg.lstsq`); or
     None where the kernels are not loaded or k > n. A is reduced to k x k by a Householder QR of
     A^T in a compiled kernel (A = R^T Q^T, u = Q y with R^T y = r), which keeps the singular values
-    of A (no Gram matrix), and only the small k x k problem goes to LAPACK: OpenBLAS runs LAPACK's
-    k x n factorisation on its worker threads, which then spin for about a tenth of a second and
+    of A (no Gram matrix). Where R's condition number (estimated, `solve_kernels.condition`) is
+    far below 1 / rcond, the triangular system is solved in a kernel too; otherwise the k x k
+    least squares goes to LAPACK. OpenBLAS runs LAPACK's k x n factorisation (and, in NumPy 1.26,
+    even a 64 x 64 one) on its worker threads, which then spin for about a tenth of a second and
     take the cores from the solve's own threads (and from Blender's). docs/performance.md,
     "Keep BLAS out of the frame"."""
     K = _state["kernels"]
@@ -468,8 +479,17 @@ def min_norm(A, r, rcond):
     K["householder"](M, tau)
     if not np.isfinite(M).all():
         return None
-    RT = np.tril(M[:, :k])
-    y = np.linalg.lstsq(RT, np.asarray(r, np.float64) / scale, rcond=rcond)[0]
+    RT = np.ascontiguousarray(np.tril(M[:, :k]))
+    r = np.asarray(r, np.float64) / scale
+    diagonal = np.abs(np.diagonal(RT))
+    if diagonal.min() > 0.0 and K["condition"](RT, 8) < 0.1 / rcond:
+        # Well inside the cut (no singular value near rcond of the largest): the solution is the
+        # one of the triangular system, without LAPACK (NumPy 1.26's OpenBLAS runs even a
+        # 64 x 64 least squares on its spinning threads).
+        y = np.empty(k)
+        K["triangular_solve"](RT, r, y, False)
+    else:
+        y = np.linalg.lstsq(RT, r, rcond=rcond)[0]
     u = np.zeros(n)
     u[:k] = y
     K["apply_q"](M, tau, u)

@@ -212,7 +212,7 @@ class _State:
         """(k,) current volumes from the e-gradient g (V is homogeneous of degree one along e)."""
         if axis is None or alpha is None:
             return self.k.x_dot(e, axis, g, *self._rows, D=self.D)
-        return base + alpha @ self.D[:, axis]
+        return base + _mv(alpha, self.D[:, axis])
 
     def volume_met(self):
         return np.abs(self.volumes - self.targets) <= self.met_rel * self.vol_scale
@@ -268,19 +268,19 @@ class _State:
                 rows.append(alpha[r])
                 rhs.append((self.targets[r] - before[r]) / divisor)
         if self.pin_rows is not None:
-            x_pin = self.pin_rows @ self.D + b.x0[:, self.pin_slots].T
+            x_pin = _mm(self.pin_rows, self.D) + b.x0[:, self.pin_slots].T
             rows.extend(self.pin_rows)
-            rhs.extend((self.pin_targets - x_pin) @ e)
+            rhs.extend(_mv(self.pin_targets - x_pin, e))
         if not rows:
             return before
         C = np.array(rows)
         r = np.array(rhs)
         CM = C if self.mob is None else C * self.mob
-        gram = CM @ C.T
+        gram = _mm(CM, C.T)
         if not (np.isfinite(gram).all() and np.isfinite(r).all()):
             raise ValueError(_OVERFLOW)   # (LAPACK may never return on NaN input)
         lam = np.linalg.lstsq(gram, r, rcond=tol.GRAM_RCOND)[0]
-        t = CM.T @ lam
+        t = _mv(CM.T, lam)
         reach = float(np.abs(t).max()) if len(t) else 0.0
         if not np.isfinite(reach):
             raise ValueError(_OVERFLOW)
@@ -295,7 +295,7 @@ class _State:
             self.used[volume_rows] = True
         n_pins = len(self.pin_slots)
         if n_pins:
-            missed = np.abs((C @ t - r)[len(r) - n_pins:]) > self.met_rel * b.lattice.size
+            missed = np.abs((_mv(C, t) - r)[len(r) - n_pins:]) > self.met_rel * b.lattice.size
             self.unmet_pins.update(self.pin_index[missed].tolist())
         self.move(e, axis, t)
         self.volumes = self.measure(e, axis, g, base, alpha)
@@ -349,14 +349,14 @@ class _State:
                 axis_, g, base = self.gradient(dirs[d])
                 alpha = self.alpha_rows(g)
                 before = self.measure(e, axis, g, base, alpha)
-                want = self.targets - before if d == len(dirs) - 1 else alpha_plan @ u
-                miss = np.where(usable, want - alpha @ u, 0.0)
+                want = self.targets - before if d == len(dirs) - 1 else _mv(alpha_plan, u)
+                miss = np.where(usable, want - _mv(alpha, u), 0.0)
                 du = _min_norm_step(alpha[usable], miss[usable], self.mob, tol.SWEEP_RCOND)
                 if np.isfinite(du).all() and np.abs(du).max(initial=0.0) <= tol.MAX_STEP_LATTICE * b.lattice.size:
                     u = u + du
             self.move(e, axis, u)
             if d == len(dirs) - 1 and axis is not None:
-                self.volumes = before + alpha @ u if d else self.volumes + alpha_plan @ u
+                self.volumes = before + _mv(alpha, u) if d else self.volumes + _mv(alpha_plan, u)
         if axis is None:
             self.gradients(dirs)
             self.volumes = self.measured(dirs[0])
@@ -387,12 +387,12 @@ class _State:
             rows.extend(J[usable])
             rhs.extend(r[usable])
         if self.pin_rows is not None:
-            x_pin = self.pin_rows @ self.D + b.x0[:, self.pin_slots].T
+            x_pin = _mm(self.pin_rows, self.D) + b.x0[:, self.pin_slots].T
             for d, (e, _, _, _) in enumerate(grads):
                 block = np.zeros((len(self.pin_rows), m * N))
                 block[:, d * N:(d + 1) * N] = self.pin_rows
                 rows.extend(block)
-                rhs.extend((self.pin_targets - x_pin) @ e)
+                rhs.extend(_mv(self.pin_targets - x_pin, e))
         if not rows:
             return False
         C, r = np.array(rows), np.array(rhs)
@@ -406,8 +406,21 @@ class _State:
     def pins_met(self):
         if self.pin_rows is None:
             return True
-        x_pin = self.pin_rows @ self.D + self.b.x0[:, self.pin_slots].T
+        x_pin = _mm(self.pin_rows, self.D) + self.b.x0[:, self.pin_slots].T
         return bool((np.abs(x_pin - self.pin_targets).max(1) <= self.met_rel * self.b.lattice.size).all())
+
+
+def _mv(A, x):
+    """A (k, n) @ x (n,) without BLAS: the OpenBLAS of NumPy 1.26 (Blender 4.2 to 5.0) runs even a
+    (64, 216) product on its threads, which then spin for about a tenth of a second and take the
+    cores from the next passes and from Blender (docs/performance.md, "Keep BLAS out of the
+    frame"); `einsum` without `optimize` sums in its own loop."""
+    return np.einsum("ij,j->i", A, x)
+
+
+def _mm(A, B):
+    """A (k, n) @ B (n, m) without BLAS (see `_mv`)."""
+    return np.einsum("ij,jk->ik", A, B)
 
 
 def _min_norm_step(C, r, mobility=None, rcond=tol.JACOBIAN_RCOND):

@@ -323,6 +323,65 @@ def apply_q(M, tau, x):
             x[i] -= d * M[j, i]
 
 
+def triangular_solve(L, b, x, transposed):
+    # x = L^-1 b (or L^-T b when `transposed`) for L (k, k) lower triangular.
+    k = L.shape[0]
+    if not transposed:
+        for i in range(k):
+            s = b[i]
+            for j in range(i):
+                s -= L[i, j] * x[j]
+            x[i] = s / L[i, i]
+    else:
+        for i in range(k - 1, -1, -1):
+            s = b[i]
+            for j in range(i + 1, k):
+                s -= L[j, i] * x[j]
+            x[i] = s / L[i, i]
+
+
+def condition(L, rounds):
+    # An estimate of L's condition number sigma_max / sigma_min (L (k, k) lower triangular, no zero
+    # on its diagonal): power iterations on L^T L and on (L^T L)^-1 from a fixed start, `rounds`
+    # each (each round multiplies a wrong direction's share by the square of a singular value
+    # ratio, so a handful settle both to a few percent).
+    k = L.shape[0]
+    x = np.empty(k)
+    y = np.empty(k)
+    z = np.empty(k)
+    estimates = np.zeros(2)
+    for which in range(2):
+        for i in range(k):
+            x[i] = 1.0 + 0.5 * np.sin(1.0 + i)      # (not orthogonal to anything in particular)
+        for _ in range(rounds):
+            n = 0.0
+            for i in range(k):
+                n += x[i] * x[i]
+            n = np.sqrt(n)
+            for i in range(k):
+                x[i] /= n
+            if which == 0:              # y = L x, z = L^T y
+                for i in range(k):
+                    s = 0.0
+                    for j in range(i + 1):
+                        s += L[i, j] * x[j]
+                    y[i] = s
+                for i in range(k):
+                    s = 0.0
+                    for j in range(i, k):
+                        s += L[j, i] * y[j]
+                    z[i] = s
+            else:                       # y = L^-T x, z = L^-1 y
+                triangular_solve(L, x, y, True)
+                triangular_solve(L, y, z, False)
+            g = 0.0
+            for i in range(k):
+                g += z[i] * z[i]
+                x[i] = z[i]
+            estimates[which] = np.sqrt(np.sqrt(g))      # |(L^T L)^(+-1) x| -> sigma^(+-2)
+    return estimates[0] * estimates[1]
+
+
 def vertex_incidence(tris_t, start, pairs):
     # The faces around every vertex as the pairs (m, n) with (vertex, m, n) in the face's
     # cyclic order, in the faces' own order (a counting sort). start (V + 1,) zeroed.
@@ -370,9 +429,10 @@ def to_verts(X, slot, origin, vertex_row, out, v0, v1):
             out[v, c] = np.float64(X[c, sl]) + origin[row, c]
 
 
-_HELPERS = ("weights", "block_weights", "same_cell", "taps", "block_transpose")
+_HELPERS = ("weights", "block_weights", "same_cell", "taps", "block_transpose", "triangular_solve")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
             "reduce_blocks": "njit", "householder": "njit_sums", "apply_q": "njit_sums",
+            "condition": "njit", "triangular_solve": "njit",
             "vertex_incidence": "njit", "slot_incidence_start": "njit", "slot_incidence_fill": "njit",
             "to_verts": "njit"}
 #: The plain functions, as written (`define` rebinds the helpers' names to compiled ones).

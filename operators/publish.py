@@ -7,6 +7,7 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import outside as outside_modes
 from ..vpffd_addon import backends, wireframe
+from ..vpffd_addon.offsets import float32_offsets
 from . import compiled_backend, meshio, modifier, node_group, solver_helper
 from .saved_data import JACOBIAN_ATTRIBUTE, float_attribute
 from .status import set_status
@@ -27,16 +28,13 @@ def zero_offsets(obj, state=None):
         state.written = None
 
 
-def _write(state, helper, offsets):
-    """Write offsets to the helper unless it already holds exactly these (every write makes
-    Blender evaluate the object again, and the handler runs again after it)."""
-    values = meshio.float32_or_raise(offsets, "the offsets").reshape(-1, 3)
-    if state.written is not None and np.array_equal(state.written, values) \
-            and len(helper.data.vertices) == len(values):
-        return values
-    solver_helper.write_offsets(helper, values)
-    state.written = values
-    return values
+def _write(state, helper, offsets32, changed):
+    """Write the float32 offsets to the helper unless it already holds exactly these (every write
+    makes Blender evaluate the object again, and the handler runs again after it)."""
+    if not changed and len(helper.data.vertices) == len(offsets32):
+        return
+    solver_helper.write_offsets(helper, offsets32)
+    state.written = offsets32
 
 
 def publish(obj, state, frame, result, t0):
@@ -45,16 +43,17 @@ def publish(obj, state, frame, result, t0):
     X = frame.inputs.positions
     lattice = frame.inputs.lattice
     core_seconds = time.perf_counter() - t0
-    offsets = result.positions - X
-    if not np.isfinite(offsets).all():
-        raise ValueError("the solve produced non-finite offsets; nothing was written")
-    offsets32 = _write(state, frame.helper, offsets)
+    # The offsets in float32, the output as Blender will compute it, whether they differ from
+    # those written and the largest, in one pass (ValueError, nothing written, for non-finite
+    # or float32-overflowing ones).
+    offsets32, output, changed, moved = float32_offsets(result.positions, X, state.written)
+    _write(state, frame.helper, offsets32, changed)
     seconds = time.perf_counter() - t0
     # Weights read before the vertex-group input changed are the old group's: solve again
     # after the evaluation that the change brings.
     state.signature, state.result = (None if frame.stale_weights else frame.signature), result
-    state.output = X + offsets32   # float32, the very sum the modifier's Set Position makes
-    state.moved = float(np.abs(offsets32).max()) if len(offsets32) else 0.0
+    state.output = output          # float32, the very sum the modifier's Set Position makes
+    state.moved = moved
     edges = (wireframe.lattice_edges(lattice.shape) if isinstance(lattice, vp.Lattice)
              else wireframe.cage_edges(lattice.cells))
     state.overlay = (meshio.transform(result.points, frame.lattice_matrix), edges)

@@ -390,7 +390,7 @@ def test_the_compiled_topology_is_numpys(kernels):
     cases = [(base, n), (turned, n), (base[1:], n), (np.vstack([base, base[:1]]), n),
              (np.vstack([base, [[3, 3, 9]]]), n), (shared, len(v) + len(v2)),
              (base[rng.permutation(len(base))], n)]
-    K = kernels.topology_kernels()
+    K = kernels.kernels()
     for tris, nv in cases:
         ref, out = vp.Topology(tris, nv), vp.mesh.Topology(tris, nv, K)
         assert out.is_closed == ref.is_closed and out.n_islands == ref.n_islands
@@ -415,3 +415,31 @@ def test_a_frame_names_the_kernels_that_solved_it_and_use_compiled_off_keeps_num
         ran[use_compiled] = result.backend
         assert (result.solution is not None) == correct
     assert ran == {False: "NUMPY", True: "COMPILED"}
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_compiled_offsets_are_numpys_bit_for_bit(kernels, dtype):
+    # What a frame writes (`offsets.float32_offsets`): the compiled pass against NumPy's, on a
+    # mesh big enough for the worker threads, unchanged and changed against what was written,
+    # and the refusals (a non-finite offset, one beyond float32), with the same words.
+    from vpffd_addon import offsets as O
+    rng = np.random.default_rng(7)
+    inputs = rng.normal(0, 3, (50_000, 3)).astype(dtype)
+    positions = inputs.astype(np.float64) * 1.01 + rng.normal(0, 1e-3, inputs.shape)
+    ref = O._numpy(positions, inputs, None)
+    got = O.float32_offsets(positions, inputs)
+    for a, b in zip(ref[:2], got[:2]):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(b, a)
+    assert got[2] is True and got[3] == ref[3] == float(np.abs(ref[0]).max())
+    assert O.float32_offsets(positions, inputs, ref[0].copy())[2] is False
+    nudged = ref[0].copy()
+    nudged[-1, 2] = np.nextafter(nudged[-1, 2], np.float32(np.inf))
+    assert O.float32_offsets(positions, inputs, nudged)[2] is True
+    assert O._numpy(positions, inputs, nudged)[2] is True
+    for bad, words in ((np.nan, "non-finite offsets"), (1e39, "exceed what Blender can store")):
+        broken = positions.copy()
+        broken[123, 1] = bad
+        for fn in (O.float32_offsets, O._numpy):
+            with pytest.raises(ValueError, match=words):
+                fn(broken, inputs, None)

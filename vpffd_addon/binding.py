@@ -451,7 +451,7 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None, kerne
     verts = measured[0] if measured is not None else check_verts(rest_verts, "rest_verts")
     V = len(verts)
     if topology is None:
-        topology = Topology(tris, V, compiled.topology_kernels() if kernels else None)
+        topology = Topology(tris, V, compiled.kernels() if kernels else None)
         if kernels:                 # (the positions in one pass, now that the islands are known)
             measured = _measured_positions(verts, topology, kernels)
     elif not isinstance(topology, Topology):

@@ -15,8 +15,9 @@ stay bit-identical to one render on the same machine).
 """
 import numpy as np
 
-from . import layout_kernels, parallel, solve_kernels
+from . import frame_kernels, layout_kernels, parallel, solve_kernels
 from .bases import axis_cells
+from .linalg3 import affine
 from .mesh import connected_components, is_closed
 from .steps import CAPABILITIES, NumpySteps, Steps
 from .volume import face_volumes
@@ -98,7 +99,8 @@ def _compile(numba, cache):
     njit_sums = numba.njit(cache=cache, nogil=True, fastmath=fast, error_model="numpy")
     inline = numba.njit(inline="always", fastmath=fast, error_model="numpy")
 
-    return {**layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline)}
+    return {**layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline),
+            **frame_kernels.define(njit)}
 
 
 def _smoke(kernels):
@@ -236,6 +238,20 @@ def _smoke_solve(kernels, dtype):
     kernels["apply_q"](M, tau, u)
     if not np.allclose(u, np.linalg.lstsq(A, np.ones(3), rcond=None)[0], rtol=0, atol=1e-12):
         raise RuntimeError("the compiled QR's least-norm step differs from LAPACK's")
+    mat = np.array([[0.3, -1.2, 0.7, 0.1], [2.0, 0.25, -0.5, -3.0], [0.1, 0.9, 1.7, 0.4], [0, 0, 0, 1.0]])
+    for given in (A.T.copy(), A.T.astype(np.float32)):
+        out = np.empty((len(given), 3))
+        kernels["affine"](given, mat, out, 0, len(given))
+        if not np.array_equal(out, affine(given, mat)):
+            raise RuntimeError("the compiled affine map differs from NumPy's")
+    pos = np.array([[0.1, -2.5, 3.0], [1e-9, 7.25, -0.3]])
+    for given in (pos[::-1].copy(), pos[::-1].astype(np.float32)):
+        off, out = np.empty((2, 3), np.float32), np.empty((2, 3), np.result_type(given.dtype, np.float32))
+        written = (pos - given).astype(np.float32)
+        flag, changed, moved = kernels["float32_offsets"](pos, given, written, off, out, 0, 2)
+        if not (flag == 0 and not changed and np.array_equal(off, written) and np.array_equal(out, given + written)
+                and moved == float(np.abs(written).max())):
+            raise RuntimeError("the compiled offsets differ from NumPy's")
     L = np.array([[2.0, 0.0, 0.0], [1.0, 0.5, 0.0], [-1.0, 3.0, 4.0]])
     x, xt = np.empty(3), np.empty(3)
     kernels["triangular_solve"](L, np.arange(1.0, 4.0), x, False)
@@ -438,8 +454,8 @@ def vertex_rows(binding):
     return got
 
 
-def topology_kernels():
-    """The compiled kernels for a `mesh.Topology` once `load()` succeeded, or None (NumPy)."""
+def kernels():
+    """The compiled kernels ({name: function}) once `load()` succeeded, or None (NumPy then)."""
     return _state["kernels"]
 
 

@@ -106,6 +106,15 @@ def _affine(points, mat):
     over the whole mesh): (V, 3) float64."""
     points = np.asarray(points)
     parts = parallel.split(len(points), len(points))
+    K = compiled.kernels()
+    if K is not None and points.dtype in (np.float32, np.float64) and points.ndim == 2 \
+            and points.shape[1:] == (3,):
+        # One pass, bit for bit the same (`frame_kernels.affine`); NumPy's takes several.
+        points = np.ascontiguousarray(points)
+        m = np.ascontiguousarray(mat, dtype=np.float64)
+        out = np.empty((len(points), 3))
+        parallel.run(lambda vs: K["affine"](points, m, out, vs.start, vs.stop), parts)
+        return out
     if len(parts) == 1:
         return affine(points, mat)
     out = np.empty((len(points), 3))
@@ -135,12 +144,13 @@ class Pipeline:
     def __init__(self, solver=None):
         self.solver = solver
         self.topology = None
+        self._faces = None
         self.binding = None
         self._binding_key = None
         self._last_space = None
 
     def clear(self):
-        self.topology = self.binding = self._binding_key = None
+        self.topology = self.binding = self._binding_key = self._faces = None
         self._last_space = None
 
     def _lattice_space(self, positions, M):
@@ -157,9 +167,15 @@ class Pipeline:
 
     def _topology(self, tris, n_verts, use_compiled=True):
         t = self.topology
-        if t is None or t.n_verts != n_verts or not t.matches(tris):
-            t = self.topology = Topology(tris, n_verts, compiled.topology_kernels() if use_compiled else None)
+        if t is None or t.n_verts != n_verts or not self._same_faces(tris):
+            t = self.topology = Topology(tris, n_verts, compiled.kernels() if use_compiled else None)
+            self._faces = tris
         return t
+
+    def _same_faces(self, tris):
+        """Whether `tris` are the faces of `self.topology`: the very array it was made from (the
+        inputs are not changed after they are handed over, `FrameInputs`), or equal ones."""
+        return tris is self._faces or self.topology.matches(tris)
 
     def _embed(self, inp, verts, influence):
         """The binding of `verts` (lattice space): reused when every input of it is unchanged."""
@@ -172,16 +188,19 @@ class Pipeline:
         key = (model, np.dtype(inp.dtype).name)
         old = self._binding_key
         if (old is not None and old[0] == key and self.binding is not None
-                and (not cage or self.binding.lattice is lat) and np.array_equal(old[1], verts)
+                and (not cage or self.binding.lattice is lat)
+                and (old[1] is verts or np.array_equal(old[1], verts))
                 and np.array_equal(old[2], influence) and self.topology is not None
-                and self.topology.matches(inp.tris)):
+                and self._same_faces(inp.tris)):
             return self.binding, False
         topology = self._topology(inp.tris, len(verts), inp.use_compiled)
         extra = dict(depth=inp.cage_depth, outside=inp.cage_outside) if cage else {}
         self.binding = None   # never keep a binding whose inputs are not all in its key
         self.binding = bind(lat, verts, topology.tris, influence=influence, dtype=inp.dtype,
                             topology=topology, use_compiled=inp.use_compiled, **extra)
-        self._binding_key = (key, verts.copy(), influence.copy())
+        # `verts` is this pipeline's own array (`_lattice_space`, which never changes one it
+        # returned): kept as it is, the next frame's unchanged positions are known by identity.
+        self._binding_key = (key, verts, influence.copy())
         return self.binding, True
 
     def evaluate(self, inp):

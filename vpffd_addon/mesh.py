@@ -103,7 +103,7 @@ class Topology:
         self.tris = check_tris(tris, self.n_verts)
         self.tris_t = np.ascontiguousarray(self.tris.T)     # (3, F): corner k of every face
         if kernels is not None:
-            # The compiled kernels (`compiled.topology_kernels`): the faces around every vertex
+            # The compiled kernels (`compiled.kernels`): the faces around every vertex
             # (which the compiled solve needs anyway), closedness from them and the islands by
             # union-find, with NumPy's results.
             start = np.zeros(self.n_verts + 1, np.int64)

@@ -191,3 +191,16 @@ def island_volumes(verts, tris, island):
         c = verts[island == k].mean(0)
         out.append(face_volume(verts, tris[face_island == k], origin=c))
     return np.array(out)
+
+
+def small_bodies(n=44, seed=5):
+    """(verts (V, 3), tris (F, 3)): n closed icospheres of 0.8% to 10% of a unit lattice's size
+    scattered through [-0.4, 0.4]^3 (float64)."""
+    rng = np.random.default_rng(seed)
+    verts, tris, offset = [], [], 0
+    for _ in range(n):
+        v, f = vp.icosphere(3, rng.uniform(0.004, 0.05))
+        verts.append(v + rng.uniform(-0.4, 0.4, 3))
+        tris.append(f + offset)
+        offset += len(v)
+    return np.vstack(verts), np.vstack(tris)

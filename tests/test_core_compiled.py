@@ -15,6 +15,9 @@ import vpffd_addon as vp  # noqa: E402
 from vpffd_addon import backends, compiled  # noqa: E402
 from vpffd_addon.steps import NumpySteps  # noqa: E402
 
+from . import _meshes as M  # noqa: E402
+from ._process import cpu_while_asleep  # noqa: E402
+
 pytestmark = pytest.mark.core
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -224,24 +227,12 @@ def test_a_numpy_outside_the_supported_range_keeps_numpy_and_says_why():
                                    "support (1.24 to 2.5)"), proc.stdout
 
 
-def _small_bodies(n=44, seed=5):
-    """n closed bodies of 0.8% to 10% of the lattice's size scattered through it (float64)."""
-    rng = np.random.default_rng(seed)
-    verts, tris, offset = [], [], 0
-    for _ in range(n):
-        v, f = vp.icosphere(3, rng.uniform(0.004, 0.05))
-        verts.append(v + rng.uniform(-0.4, 0.4, 3))
-        tris.append(f + offset)
-        offset += len(v)
-    return np.vstack(verts), np.vstack(tris)
-
-
 def test_many_small_islands_keep_their_volumes_in_float32(kernels):
     # Squashed to half height: in float32 the coordinates of a body 1% of the lattice's size round
     # at ~1e-5 of its volume, so the joint island steps run in float64 (`CompiledSteps.in_float64`)
     # and every island's volume, measured from the float32 coordinates Blender would store, is
     # kept to 1e-5.
-    verts, tris = _small_bodies()
+    verts, tris = M.small_bodies()
     lat = vp.Lattice((5, 5, 5), "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
     P = lat.rest_points * [1.0, 1.0, 0.5] + np.random.default_rng(1).normal(0, 0.01, lat.rest_points.shape)
     b = vp.bind(lat, verts, tris, dtype=np.float32)
@@ -350,29 +341,21 @@ def test_the_least_norm_step_equals_lapacks(kernels):
     assert kernels.min_norm(rng.standard_normal((8, 5)), np.ones(8), 1e-10) is None
 
 
-def _cpu_while_asleep(seconds=0.1):
-    """Milliseconds of this process's CPU time spent while its main thread sleeps."""
-    import time
-    c0 = time.process_time()
-    time.sleep(seconds)
-    return (time.process_time() - c0) * 1e3
-
-
 def test_a_solve_leaves_no_blas_threads_spinning(kernels):
     # OpenBLAS runs a k x n least-squares problem on its worker threads, which then spin for about
     # a tenth of a second: in Blender they would take the cores from the next frame and from
     # Blender's own evaluation (docs/performance.md, "Keep BLAS out of the frame"). A solve
     # with islands and pins (the joint steps) must leave the process idle once it returns:
     # measured as CPU time, not wall time, so a busy machine can only hide a spin, never fake one.
-    verts, tris = _small_bodies()
+    verts, tris = M.small_bodies()
     lat = vp.Lattice((6, 6, 6), "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
     P = lat.rest_points * [1.0, 1.0, 0.5]
     b = vp.bind(lat, verts, tris, dtype=np.float32)
-    _cpu_while_asleep(0.5)      # what earlier tests left spinning dies down
+    cpu_while_asleep(0.5)      # what earlier tests left spinning dies down
     for pins in ((), [(0, verts[0] * [1, 1, 0.5]), (700, verts[700] * [1, 1, 0.5])]):
         sol = b.solve(P, axes="XYZ", islands=True, pins=pins)
         assert not sol.warnings, sol.warnings
-        assert _cpu_while_asleep() < 20.0
+        assert cpu_while_asleep() < 20.0
 
 
 def test_the_compiled_topology_is_numpys(kernels):

@@ -21,6 +21,7 @@ from vpffd_addon.solve import _State
 from vpffd_addon.steps import NumpySteps
 
 from . import _meshes as M
+from ._process import cpu_while_asleep
 
 pytestmark = pytest.mark.core
 
@@ -237,35 +238,17 @@ def test_the_three_axis_gradients_are_taken_again_after_a_move(kernels):
         np.testing.assert_allclose(st.measured(e), want, rtol=1e-12, atol=0)
 
 
-def _small_bodies(n=44, seed=5):
-    rng = np.random.default_rng(seed)
-    verts, tris, offset = [], [], 0
-    for _ in range(n):
-        v, f = vp.icosphere(3, rng.uniform(0.004, 0.05))
-        verts.append(v + rng.uniform(-0.4, 0.4, 3))
-        tris.append(f + offset)
-        offset += len(v)
-    return np.vstack(verts), np.vstack(tris)
-
-
-def _cpu_while_asleep(seconds=0.1):
-    import time
-    c0 = time.process_time()
-    time.sleep(seconds)
-    return (time.process_time() - c0) * 1e3
-
-
 def test_every_sweep_path_leaves_no_blas_threads_spinning(kernels):
     # `test_core_compiled` checks XYZ; the sweep's one-direction, two-direction and rotated
     # paths, and more islands than control points (min_norm leaves those to LAPACK).
-    verts, tris = _small_bodies()
-    _cpu_while_asleep(0.5)
+    verts, tris = M.small_bodies()
+    cpu_while_asleep(0.5)
     for shape, kw in (((6, 6, 6), {"axes": "Z"}), ((6, 6, 6), {"axes": "XY"}),
                       ((6, 6, 6), {"directions": _ROT}), ((3, 3, 3), {"axes": "Z"})):
         lat = vp.Lattice(shape, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
         b = vp.bind(lat, verts, tris, dtype=np.float32)
         b.solve(lat.rest_points * [1.0, 1.0, 0.5], islands=True, **kw)
-        assert _cpu_while_asleep() < 20.0, (shape, kw)
+        assert cpu_while_asleep() < 20.0, (shape, kw)
 
 
 def test_without_numba_islands_keep_their_volumes():

@@ -188,21 +188,15 @@ def define(njit):
                 inc[deg] = n
                 deg += 1
             n_faces += deg
-            for k in range(1, deg):             # (insertion sorts: a handful of entries)
-                x = out[k]
-                j = k - 1
-                while j >= 0 and out[j] > x:
-                    out[j + 1] = out[j]
-                    j -= 1
-                out[j + 1] = x
-                x = inc[k]
-                j = k - 1
-                while j >= 0 and inc[j] > x:
-                    inc[j + 1] = inc[j]
-                    j -= 1
-                inc[j + 1] = x
-            for k in range(deg):
-                if out[k] != inc[k] or (k > 0 and out[k] == out[k - 1]):
+            for k in range(deg):                # (a handful of entries: count, no sort)
+                going = 0
+                coming = 0
+                for j in range(deg):
+                    if out[j] == out[k]:
+                        going += 1
+                    if inc[j] == out[k]:
+                        coming += 1
+                if going != 1 or coming != 1:   # (as many of each: then every one comes once)
                     return False
         return n_faces > 0
 

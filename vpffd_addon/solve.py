@@ -357,7 +357,7 @@ class _State:
             self.move(e, axis, u)
             if d == len(dirs) - 1 and axis is not None:
                 self.volumes = before + _mv(alpha, u) if d else self.volumes + _mv(alpha_plan, u)
-        if axis is None:
+        if grads[-1][1] is None:    # (the last direction is no axis: its volumes are measured)
             self.gradients(dirs)
             self.volumes = self.measured(dirs[0])
         return True

@@ -1,9 +1,9 @@
 """Bake: the volume-preserved deformation of a frame range written to a point cache (PC2, or MDD)
 that Blender's own Mesh Cache modifier reads, and a switch between that cache and the live solve.
 
-A baked frame is what the VP-FFD slot gives on that frame (the positions that reach it plus the
-offsets VP-FFD writes, `update.slot_output`), so the cache reproduces the live result. Modifiers
-before VP-FFD are baked in. `switch_to_cache` puts a Mesh Cache modifier where the VP-FFD modifier
+A baked frame is what the (last) VP-FFD slot gives on that frame (the positions that reach it plus
+the offsets VP-FFD writes, `update.slot_output`), so the cache reproduces the live result. Modifiers
+before it, other VP-FFD modifiers included, are baked in. `switch_to_cache` puts a Mesh Cache modifier where the VP-FFD modifier
 is in the stack and disables (does not delete) the VP-FFD modifier: a file saved that way renders on a machine
 without the extension. `switch_to_live` goes back; the cache modifier stays, disabled, remembering
 its file for `switch_to_cache` again.
@@ -26,12 +26,12 @@ import bpy
 import numpy as np
 
 from ..vpffd_addon import pointcache
-from . import modifier
+from . import deformers
 from .bake_files import BakeError, check_format, os_error_words, prepare_folder, resolve_path
 from .cache_modifier import find_cache
-from .cache_switch import check_bakeable, switch_to_cache
+from .cache_switch import check_bakeable, live_modifiers, switch_to_cache
 from .status import status
-from .update import slot_output, update
+from .update import slot_output, update_object
 
 log = logging.getLogger(__name__)
 
@@ -57,12 +57,12 @@ class Baker:
     ``b = Baker(...); b.start(); while not b.step(): ...; result = b.finish()``, or `b.abort()`.
 
     Validates everything in the constructor (BakeError), writes nothing before `start()`, and
-    writes the final file only in `finish()`. While it runs, the VP-FFD modifier is on and the
+    writes the final file only in `finish()`. While it runs, the VP-FFD modifiers are on and the
     cache modifier off; `finish`/`abort` restore them and the scene's frame."""
 
     def __init__(self, obj, scene, filepath, frame_start, frame_end, fmt="PC2", make_folder=False):
         self.fmt = check_format(fmt)
-        self.vp_mod = check_bakeable(obj, scene)
+        self.deformer = check_bakeable(obj, scene)
         self.obj, self.scene = obj, scene
         try:
             self.frame_start, self.frame_end = int(frame_start), int(frame_end)
@@ -95,19 +95,22 @@ class Baker:
         prepare_folder(self.path, self.make_folder)
         self._t0 = time.perf_counter()
         cache = find_cache(obj)
+        mods = live_modifiers(obj)
         self._saved = (scene.frame_current, scene.frame_subframe,
-                       (self.vp_mod.show_viewport, self.vp_mod.show_render),
+                       [(m, m.show_viewport, m.show_render) for m in mods],
                        None if cache is None else (cache.show_viewport, cache.show_render))
-        self.vp_mod.show_viewport = True
+        for m in mods:
+            m.show_viewport = True
         if cache is not None:
             cache.show_viewport = False
         # The cache holds what the VP-FFD slot gives, so its point count is the slot's.
         self.scene.frame_set(self.frame_start)
-        update(obj, self._depsgraph(), force=True)
-        first = slot_output(obj)
-        if status(obj).error or first is None:
+        update_object(obj, self._depsgraph(), force=True)
+        first = slot_output(self.deformer)
+        error = self._error()
+        if error or first is None:
             self._restore()
-            raise BakeError(f"frame {self.frame_start}: {status(obj).error or 'no result'}")
+            raise BakeError(f"frame {self.frame_start}: {error or 'no result'}")
         n = self.n_points = len(first)
         try:
             if self.fmt == "PC2":
@@ -131,6 +134,14 @@ class Baker:
                 return depsgraph
         raise BakeError(f"'{self.obj.name}' is in no view layer of scene '{self.scene.name}'")
 
+    def _error(self):
+        """The first error of the object's deformers on this frame, or None."""
+        for d in deformers.bound(self.obj):
+            error = status(d).error if d.mod is not None else None
+            if error:
+                return error
+        return None
+
     def step(self):
         """Bake the next frame. Returns True once every frame is baked."""
         if self._writer is None or self._writer.closed:
@@ -141,11 +152,11 @@ class Baker:
         # The frame handler has already solved this frame; a non-forced update re-solves exactly
         # when the inputs differ from that solve. `start` forced the first frame's solve, so no
         # stale state (e.g. an undo) can slip in.
-        update(self.obj, depsgraph)
-        error = status(self.obj).error
+        update_object(self.obj, depsgraph)
+        error = self._error()
         if error:
             raise BakeError(f"frame {f}: {error}")
-        coords = slot_output(self.obj)
+        coords = slot_output(self.deformer)
         if coords is None or len(coords) != self.n_points:
             raise BakeError(f"frame {f}: the number of points reaching VP-FFD changed "
                             f"({self.n_points} at the first frame)")
@@ -180,8 +191,10 @@ class Baker:
             return
         frame, subframe, vp_flags, cache_flags = self._saved
         self._saved = None
-        if modifier.find(self.obj) == self.vp_mod:
-            self.vp_mod.show_viewport, self.vp_mod.show_render = vp_flags
+        present = set(live_modifiers(self.obj))
+        for m, viewport, render in vp_flags:
+            if m in present:
+                m.show_viewport, m.show_render = viewport, render
         cache = find_cache(self.obj)
         if cache is not None and cache_flags is not None:
             cache.show_viewport, cache.show_render = cache_flags

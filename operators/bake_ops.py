@@ -6,7 +6,7 @@ import time
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-from . import modifier
+from . import deformers, modifier
 from .bake import Baker
 from .bake_files import FORMAT_ITEMS, FORMATS, BakeError, default_filepath
 from .cache_modifier import find_cache, using_cache
@@ -37,7 +37,7 @@ def _format_changed(self, _context):
 
 def _bound_mesh(context):
     ob = context.object
-    return ob is not None and ob.type == "MESH" and ob.vpffd.is_bound
+    return ob is not None and ob.type == "MESH" and deformers.is_bound(ob)
 
 
 class OBJECT_OT_vpffd_bake(bpy.types.Operator):
@@ -293,8 +293,8 @@ def draw_bake(layout, obj):
     cache = find_cache(obj)
     if cache is not None and using_cache(obj):
         col.label(text=f"Playing the {cache.cache_format} cache {cache.filepath}.", icon="FILE_CACHE")
-        if modifier.find(obj) is not None and modifier.find(obj).show_viewport:
-            col.label(text="The VP-FFD modifier is on too: its offsets add to the cache.",
+        if any(m.show_viewport for m in modifier.find_all(obj)):
+            col.label(text="A VP-FFD modifier is on too: its offsets add to the cache.",
                       icon="ERROR")
     row = col.row(align=True)
     row.operator("object.vpffd_bake", icon="EXPORT")

@@ -1,42 +1,45 @@
-"""The cached state of each bound object (`Bound`): the frame pipeline with its caches, the last
+"""The cached state of each bound deformer (`Bound`): the frame pipeline with its caches, the last
 solve's key, result and overlay, the GPU solver. Nothing in it is needed for a frame's result to be
 right: it only saves work (docs/stack.md); `forget` and `invalidate` drop it."""
 from .. import vpffd_addon as vp
 from ..vpffd_addon import backends
 from . import gpu_backend
 from .control_read import is_control
-from .status import forget_status
+from .status import deformer_of, forget_status
 
-states = {}   # object session_uid -> Bound
-
-
-def forget(obj=None):
-    """Drop cached bindings and the status shown (all, or one object's)."""
-    dropped = list(states.values()) if obj is None else [states.get(obj.session_uid)]
-    for state in dropped:
-        if state is not None:
-            state.free()
-    if obj is None:
-        states.clear()
-    else:
-        states.pop(obj.session_uid, None)
-    forget_status(obj)
+states = {}   # deformer key (object session_uid, modifier uid) -> Bound
 
 
-def relink_after_undo(obj, objects):
-    """Point a bound object back at the lattice it lost to Delete when undo brought that lattice
+def state_of(target):
+    """The cached `Bound` of deformer `target` (or of a mesh object's first deformer), or None."""
+    return states.get(deformer_of(target).key)
+
+
+def forget(obj=None, d=None):
+    """Drop cached bindings and the status shown: of deformer `d`, of every deformer of `obj`,
+    or of all."""
+    keys = [k for k in states if obj is None and d is None or (d is not None and k == d.key)
+            or (obj is not None and k[0] == obj.session_uid)]
+    for k in keys:
+        states.pop(k).free()
+    forget_status(obj, None if d is None else d.key)
+
+
+def relink_after_undo(d, objects):
+    """Point bound deformer `d` back at the lattice it lost to Delete when undo brought that lattice
     back. VP-FFD lets go of a deleted lattice in its update handler, after Delete's undo step was
     written, so the step before Delete holds the same object data as the step of Delete and
     Blender's undo keeps the object as it is in memory, link cleared (Blender clears its own
     modifier's link inside the operator, before the step is written). `objects`: bpy.data.objects.
     Returns True when the link was restored."""
-    state = states.get(obj.session_uid)
-    if state is None or not state.deleted or obj.vpffd.lattice is not None or not obj.vpffd.is_bound:
+    state = states.get(d.key)
+    s = d.settings
+    if state is None or not state.deleted or s.lattice is not None or not s.is_bound:
         return False
     back = objects.get(state.deleted)
     if not is_control(back) or not any(True for _ in back.users_scene):
         return False
-    obj.vpffd.lattice = back        # its update callback points the modifier's input at it too
+    s.lattice = back                # its update callback points the modifier's input at it too
     state.deleted = None
     return True
 
@@ -50,7 +53,7 @@ def invalidate():
 
 
 class Bound:
-    """Cached per-object state: the frame pipeline (topology and binding caches), the faces of
+    """Cached per-deformer state: the frame pipeline (topology and binding caches), the faces of
     the slot's input, the last solve's signature, result and overlay. Nothing in it is needed for
     a frame's result to be right: it only saves work (docs/stack.md)."""
 
@@ -62,6 +65,7 @@ class Bound:
         self.output = None      # (V, 3) float32 slot output of the last solve
         self.moved = 0.0        # the largest offset of the last solve (tells Apply from removal)
         self.written = None     # offsets last written to the solver helper
+        self.wrote = False      # whether the last update wrote new offsets (update_scene)
         self.overlay = None
         self.gpu = None         # GPUSolver for the current binding, made on first GPU use
         self.gpu_binding = None

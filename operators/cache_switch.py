@@ -1,29 +1,42 @@
 """The switch between a baked cache and the live solve: `switch_to_cache` puts a Mesh Cache
-modifier where the VP-FFD modifier is in the stack and disables (does not delete) the VP-FFD
-modifier; `switch_to_live` goes back (bake.py says how frames map)."""
+modifier where the (last) VP-FFD modifier is in the stack and disables (does not delete) the
+VP-FFD modifiers; `switch_to_live` goes back (bake.py says how frames map)."""
 import bpy
 
 from ..vpffd_addon import pointcache
-from . import modifier
+from . import deformers
 from .bake_files import BakeError, absolute_path, check_format, os_error_words
 from .cache_modifier import CACHE_MODIFIER_NAME, find_cache
-from .update import slot_output, update
+from .update import slot_output, update_object
+
+
+def baked_deformer(obj):
+    """The deformer whose slot output a bake writes: the last bound VP-FFD modifier in the stack,
+    whose slot gives the result of every VP-FFD deformer before it; None when there is none."""
+    found = [d for d in deformers.bound(obj) if d.mod is not None]
+    return found[-1] if found else None
+
+
+def live_modifiers(obj):
+    """The VP-FFD modifiers of the bound deformers of `obj` (what the cache stands in for)."""
+    return [d.mod for d in deformers.bound(obj) if d.mod is not None]
 
 
 def check_bakeable(obj, scene=None):
-    """Raise BakeError naming what stops `obj` from being baked (in `scene`)."""
+    """Raise BakeError naming what stops `obj` from being baked (in `scene`); else the deformer
+    whose slot output the bake writes (`baked_deformer`)."""
     if obj is None or obj.type != "MESH":
         raise BakeError("select a mesh object bound with VP-FFD")
-    if not obj.vpffd.is_bound:
+    if not deformers.is_bound(obj):
         raise BakeError(f"'{obj.name}' is not bound to a lattice: Bind it first")
-    vp_mod = modifier.find(obj)
-    if vp_mod is None:
+    d = baked_deformer(obj)
+    if d is None:
         raise BakeError("the VP-FFD modifier was removed: Bind again")
     if obj.mode == "EDIT":
         raise BakeError("leave Edit Mode before baking")
     if scene is not None and scene.objects.get(obj.name) != obj:
         raise BakeError(f"'{obj.name}' is not in scene '{scene.name}'")
-    return vp_mod
+    return d
 
 
 def _move_before(obj, mod, target):
@@ -63,9 +76,10 @@ def switch_to_cache(obj, filepath, fmt="PC2", frame_start=None, scene=None):
     fmt = check_format(fmt)
     if obj is None or obj.type != "MESH":
         raise BakeError("select a mesh object")
-    vp_mod = modifier.find(obj)
-    if vp_mod is None:
+    d = baked_deformer(obj)
+    if d is None:
         raise BakeError(f"'{obj.name}' has no VP-FFD modifier to replace")
+    vp_mod = d.mod
     path = _cache_path_for_reading(filepath)
     try:
         info = pointcache.cache_info(path, fmt)
@@ -76,7 +90,7 @@ def switch_to_cache(obj, filepath, fmt="PC2", frame_start=None, scene=None):
     except OSError as exc:
         raise BakeError(f"cannot read {path}: {os_error_words(exc)}") from None
     # The cache replaces what reaches the VP-FFD slot: its point count is the slot's.
-    live = slot_output(obj)
+    live = slot_output(d)
     n = len(obj.data.vertices) if live is None else len(live)
     if info["points"] != n:
         raise BakeError(f"{path} holds {info['points']} points but {n} reach the VP-FFD modifier "
@@ -112,7 +126,8 @@ def switch_to_cache(obj, filepath, fmt="PC2", frame_start=None, scene=None):
         cache.flip_axis = set()                   # Blender 4.2: an enum set
     _move_before(obj, cache, vp_mod)
     cache.show_viewport = cache.show_render = True
-    vp_mod.show_viewport = vp_mod.show_render = False
+    for m in live_modifiers(obj):
+        m.show_viewport = m.show_render = False
     obj.update_tag()
     return cache
 
@@ -122,15 +137,15 @@ def switch_to_live(obj):
     file, for `switch_to_cache`). Raises BakeError when the VP-FFD modifier is gone."""
     if obj is None or obj.type != "MESH":
         raise BakeError("select a mesh object")
-    vp_mod = modifier.find(obj)
-    if vp_mod is None:
+    mods = live_modifiers(obj)
+    if not mods:
         raise BakeError(f"'{obj.name}' has no VP-FFD modifier to switch back to: Bind again")
     cache = find_cache(obj)
     if cache is not None:
         cache.show_viewport = cache.show_render = False
-    vp_mod.show_viewport = vp_mod.show_render = True
-    if obj.vpffd.is_bound:
-        update(obj, bpy.context.evaluated_depsgraph_get(), force=True)  # never raises
+    for m in mods:
+        m.show_viewport = m.show_render = True
+    update_object(obj, bpy.context.evaluated_depsgraph_get(), force=True)  # never raises
     obj.update_tag()
 
 

@@ -37,7 +37,7 @@ def cage_points(cage_eval, n_points):
 
 
 def _cage_model(state, obj, cage_ob, helper):
-    """(vp.Cage at bind time, its rest points (N, 3), key) for a bound mesh, cached per object."""
+    """(vp.Cage at bind time, its rest points (N, 3), key) for a bound deformer, cached in its state."""
     flat = tuple(cage_ob.data[cage.CELLS_PROPERTY].to_list())
     rest = saved(helper, obj, CAGE_REST_PROPERTY)
     if rest is None:

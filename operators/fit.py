@@ -5,10 +5,11 @@ import bpy
 import numpy as np
 from bpy.props import EnumProperty, FloatProperty, IntProperty
 
-from . import meshio
+from . import deformers, meshio
 from .cage import selected_meshes
 from .text import report
-from .lifecycle import BindError, bind
+from .lifecycle import BindError, add_deformer, bind
+from .release import unbind
 
 try:
     from ..vpffd_addon import fit_lattice
@@ -18,7 +19,8 @@ except ImportError:  # loaded outside the extension package
 
 def add_fitted_lattice(context, meshes, resolution=4, margin=0.05, axes="XYZ"):
     """Make a B-spline lattice around the evaluated `meshes` and bind each of them to it with
-    correction `axes`. Returns (lattice object, {mesh name: warnings or error text})."""
+    correction `axes` (a mesh that has a bound VP-FFD deformer already gets another, at the end of
+    its stack). Returns (lattice object, {mesh name: warnings or error text})."""
     lo, hi = meshio.world_bounds(meshes, context.evaluated_depsgraph_get())
     centre, size, shape = fit_lattice(np.stack([lo, hi]), margin=margin, resolution=resolution)
     data = bpy.data.lattices.new("VP-FFD Lattice")
@@ -35,12 +37,22 @@ def add_fitted_lattice(context, meshes, resolution=4, margin=0.05, axes="XYZ"):
     context.view_layer.update()
     results = {}
     for ob in meshes:
-        ob.vpffd.lattice = lat
-        ob.vpffd.axes = axes
+        added = None
         try:
-            results[ob.name] = bind(ob, context.evaluated_depsgraph_get())
+            if deformers.is_bound(ob):
+                d = added = add_deformer(ob, {"lattice": lat, "axes": axes})
+                ob.modifiers.active = d.mod
+            else:
+                d = deformers.first(ob)
+                d.settings.lattice, d.settings.axes = lat, axes
+            results[ob.name] = bind(d, context.evaluated_depsgraph_get())
         except (BindError, ValueError) as exc:
             results[ob.name] = str(exc)
+            # The deformer added for it goes with the failed Bind (a refused solve removed it
+            # already: ask by uid, never through the removed modifier).
+            left = [m for m in ob.modifiers if added is not None and m.persistent_uid == added.uid]
+            if left:
+                unbind(deformers.Deformer(ob, left[0], added.settings))
     return lat, results
 
 

@@ -9,7 +9,7 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import lattice_space, linalg3
 from ..vpffd_addon.frame_key import FrameKey
-from . import meshio, modifier, node_group, solver_helper
+from . import deformers, meshio, modifier, node_group, solver_helper
 from .control_read import control_inputs, is_control, missing_control, mobility_of
 from .publish import zero_offsets
 from .saved_data import BIND_VOLUME_PROPERTY, PIN_ATTRIBUTE, PIN_PROPERTY, float_attribute
@@ -30,20 +30,21 @@ class Frame:
     editing: bool               #: the mesh is in Edit Mode
 
 
-def read(obj, state, mod, depsgraph, helpers_taken):
-    """The `Frame` of this evaluation, or None when there is nothing to solve (the panel says
-    why). Raises ValueError for what the user must fix."""
-    extra = modifier.find_all(obj)[1:]
-    if extra:
-        raise ValueError(f"one VP-FFD modifier per object: remove {', '.join(repr(m.name) for m in extra)}")
+def read(d, state, depsgraph, helpers_taken):
+    """The `Frame` of this evaluation of deformer `d`, or None when there is nothing to solve (the
+    panel says why). Raises ValueError for what the user must fix."""
+    obj, mod = d.obj, d.mod
     rendering = depsgraph.mode == "RENDER"
     # Read what reached the slot before touching the modifier: writing its inputs tags the
     # object, and Blender 4.4+ then refuses to hand out its evaluated geometry.
     ob_eval = obj.evaluated_get(depsgraph)
-    tap = read_tap(ob_eval, depsgraph)
+    slot = node_group.get_input(mod, node_group.SLOT_INPUT)
+    tap = read_tap(ob_eval, depsgraph, slot if slot == mod.persistent_uid else None)
+    if tap is not None and slot != mod.persistent_uid and len(modifier.find_all(obj)) > 1:
+        tap = None      # the tap of a modifier whose slot input is set below, for the next evaluation
     stale_weights = False
     if not rendering:
-        stale_weights = modifier.sync_inputs(obj, mod)
+        stale_weights = modifier.sync_inputs(mod, d.settings)
         helper = solver_helper.helper(obj, mod, exclusive_of=helpers_taken or ())
     else:
         helper = node_group.get_input(mod, node_group.SOLVER_INPUT)
@@ -51,29 +52,32 @@ def read(obj, state, mod, depsgraph, helpers_taken):
         raise ValueError("the VP-FFD modifier has no solver helper: Re-bind")
     if helpers_taken is not None:
         helpers_taken.add(helper)
-    lat_ob = _control(obj, state, depsgraph)
+    lat_ob = _control(d, state, depsgraph)
     if lat_ob is None:
         return None
     if tap is None:
         if not (mod.show_render if rendering else mod.show_viewport):
-            set_status(obj, error="the VP-FFD modifier is switched off: switch it on to solve")
+            set_status(d, error="the VP-FFD modifier is switched off: switch it on to solve")
             return None
-        zero_offsets(obj, state)   # a defined result: whatever reaches the slot, undeformed
+        if slot != mod.persistent_uid and not rendering:
+            state.signature = None  # its tap is marked from the next evaluation on
+            return None
+        zero_offsets(d, state)     # a defined result: whatever reaches the slot, undeformed
         state.signature = None      # solve again once something reaches it
-        set_status(obj, error="nothing reaches VP-FFD's slot at the end of the stack (a "
-                              "Geometry Nodes modifier after it drops instances or point clouds?)")
+        set_status(d, error="nothing reaches VP-FFD's slot at the end of the stack (a "
+                            "Geometry Nodes modifier after it drops instances or point clouds?)")
         return None
     # Animated settings (volume scale, strength, ...) have this evaluation's values on the
     # evaluated object only: a render's depsgraph does not write them back to the original.
-    state.settings = ob_eval.vpffd
-    return _frame(obj, ob_eval, state, lat_ob, depsgraph, tap=tap, mod=mod, helper=helper,
+    state.settings = deformers.evaluated_settings(d, ob_eval)
+    return _frame(d, ob_eval, state, lat_ob, depsgraph, tap=tap, helper=helper,
                   stale_weights=stale_weights, may_write=not rendering)
 
 
-def _control(obj, state, depsgraph):
-    """The bound object's Lattice or cage, or None (zero offsets shown, the panel says why). A
+def _control(d, state, depsgraph):
+    """The bound deformer's Lattice or cage, or None (zero offsets shown, the panel says why). A
     lattice the user deleted is let go, as Blender's Lattice modifier lets go of it."""
-    s = obj.vpffd
+    s = d.settings
     lat_ob = s.lattice
     if lat_ob is not None and not any(True for _ in lat_ob.users_scene) \
             and depsgraph.mode != "RENDER":
@@ -81,20 +85,21 @@ def _control(obj, state, depsgraph):
         # and the modifier's input are users (undo links it again: `relink_after_undo`).
         state.deleted = lat_ob.name
         s.lattice = None
-        modifier.set_lattice(obj, None)
+        modifier.set_lattice(d.mod, None)
         lat_ob = None
     if not is_control(lat_ob):
-        zero_offsets(obj, state)
-        set_status(obj, error=(f"lattice '{state.deleted}' was deleted: pick another, or Unbind"
-                               if lat_ob is None and state.deleted else missing_control(lat_ob)))
+        zero_offsets(d, state)
+        set_status(d, error=(f"lattice '{state.deleted}' was deleted: pick another, or Unbind"
+                             if lat_ob is None and state.deleted else missing_control(lat_ob)))
         return None
     state.deleted = None
     return lat_ob
 
 
-def _frame(obj, ob_eval, state, lat_ob, depsgraph, *, tap, mod, helper, stale_weights, may_write):
-    """The `Frame` of the tap `tap` ((V, 3) positions, (V,) weights, triangles or None), with the
-    settings of this evaluation (`state.settings`)."""
+def _frame(d, ob_eval, state, lat_ob, depsgraph, *, tap, helper, stale_weights, may_write):
+    """The `Frame` of deformer `d` for the tap `tap` ((V, 3) positions, (V,) weights, triangles
+    or None), with the settings of this evaluation (`state.settings`)."""
+    obj, mod = d.obj, d.mod
     s = state.settings
     X, weights, tapped_tris = tap
     lattice, _, points, lattice_weights, cage_options, M_lat = control_inputs(
@@ -141,7 +146,7 @@ def _frame(obj, ob_eval, state, lat_ob, depsgraph, *, tap, mod, helper, stale_we
 
 def same_named_settings(s, computed=()):
     """{field: value} for every field of `vpffd_addon.FrameInputs` that is not in `computed` and
-    has a setting of the same name in `s` (obj.vpffd): such a setting reaches the core as it is,
+    has a setting of the same name in `s` (a deformer's settings): such a setting reaches the core as it is,
     with no line of its own here (docs/architecture.md, "A new setting")."""
     names = s.bl_rna.properties.keys()
     return {f.name: getattr(s, f.name) for f in dataclasses.fields(vp.FrameInputs)

@@ -5,7 +5,7 @@ import logging
 import bpy
 from bpy.app.handlers import persistent
 
-from . import modifier
+from . import deformers, modifier
 from .bound import forget, invalidate, relink_after_undo
 from .update import bound_objects, update_scene
 
@@ -48,9 +48,12 @@ def on_load(*_args) -> None:
     try:
         for scene in bpy.data.scenes:
             for ob in bound_objects(scene):
-                # Files bound by older versions have an older node group and no solver helper.
-                if modifier.find(ob) is not None and ob.library is None:
-                    modifier.ensure(ob)
+                # Files bound by older versions have an older node group and no solver helper,
+                # and settings that do not name their modifier yet.
+                if ob.library is None:
+                    for d in deformers.bound(ob):
+                        if d.mod is not None:
+                            modifier.prepare(ob, d.mod, deformers.claim(ob, d.mod))
             if bound_objects(scene):
                 scene.render.use_lock_interface = True
         context = bpy.context
@@ -71,7 +74,8 @@ def on_undo(*_args) -> None:
     try:
         for scene in bpy.data.scenes:
             for ob in bound_objects(scene):
-                relink_after_undo(ob, bpy.data.objects)
+                for d in deformers.bound(ob):
+                    relink_after_undo(d, bpy.data.objects)
         context = bpy.context
         if context.scene is not None:
             _guarded(context.scene, context.evaluated_depsgraph_get())

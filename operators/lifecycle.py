@@ -4,28 +4,33 @@ import numpy as np
 
 from .. import vpffd_addon as vp
 from ..vpffd_addon import linalg3
-from . import cage, meshio, modifier, node_group, solver_helper
+from . import cage, deformers, meshio, modifier, node_group, solver_helper
 from .bound import forget, states
 from .control_read import cage_points, is_control, missing_control
 from .release import note_applied, unbind
 from .saved_data import (BIND_VOLUME_PROPERTY, CAGE_REST_PROPERTY, LEGACY_ATTRIBUTES, PIN_ATTRIBUTE,
                          PIN_PROPERTY, remove_attribute)
-from .status import outside_message, status
+from .status import deformer_of, outside_message, status
 from .status_line import open_mesh_words
-from .update import slot_output, update
+from .update import slot_output, update, update_object
 
 
 class BindError(ValueError):
     """A problem the user must fix before binding (the message says what)."""
 
 
-def check_bindable(obj):
-    """Raise BindError naming what stops `obj` from being bound."""
-    if obj is None or obj.type != "MESH":
+def check_bindable(target):
+    """Raise BindError naming what stops deformer `target` (or a mesh object's first) from being
+    bound."""
+    if target is None or getattr(target, "type", "MESH") != "MESH":
+        raise BindError("select a mesh object to bind")
+    d = deformer_of(target)
+    obj = d.obj
+    if obj.type != "MESH":
         raise BindError("select a mesh object to bind")
     if obj.mode == "EDIT":
         raise BindError("leave Edit Mode before binding")
-    s = obj.vpffd
+    s = d.settings
     if not is_control(s.lattice):
         raise BindError("pick a Lattice object or a VP-FFD cage first" if s.lattice is None
                         else missing_control(s.lattice))
@@ -35,10 +40,26 @@ def check_bindable(obj):
         raise BindError(f"mesh '{obj.data.name}' has no faces: there is no volume to keep")
 
 
-def bind(obj, depsgraph):
-    """Bind `obj` to its lattice (settings in obj.vpffd). Returns warnings (list of str)."""
-    check_bindable(obj)
-    s = obj.vpffd
+def add_deformer(obj, settings_from=None):
+    """A new VP-FFD deformer of `obj`: a VP-FFD modifier at the end of the stack, with settings of
+    its own (`obj.vpffd` while that is free, else a new entry of `obj.vpffd_extra`), copied from
+    `settings_from` (a dict of setting values) when given. Not bound yet."""
+    if obj is None or obj.type != "MESH":
+        raise BindError("select a mesh object")
+    mod = modifier.add(obj)
+    s = deformers.claim(obj, mod)
+    for name, value in (settings_from or {}).items():
+        setattr(s, name, value)
+    modifier.sync_inputs(mod, s)
+    return deformers.Deformer(obj, mod, s)
+
+
+def bind(target, depsgraph):
+    """Bind deformer `target` (a `deformers.Deformer`, or a mesh object for its first deformer,
+    whose settings are obj.vpffd) to its lattice. Returns warnings (list of str)."""
+    d = deformer_of(target)
+    check_bindable(d)
+    obj, s = d.obj, d.settings
     mesh = obj.data
     # Everything is read and checked before anything is written: a refused Bind changes nothing.
     pins = np.zeros(len(mesh.vertices))
@@ -71,11 +92,14 @@ def bind(obj, depsgraph):
     if mesh.library is None:
         for legacy in (PIN_ATTRIBUTE, CAGE_REST_PROPERTY) + LEGACY_ATTRIBUTES:
             remove_attribute(mesh, legacy)
+    mod = d.mod if d.mod is not None else modifier.add(obj)
+    deformers.claim(obj, mod)           # the settings name their modifier from now on
+    d = deformers.Deformer(obj, mod, s)
     s.is_bound = True
     s.applied_lattice = ""
-    modifier.ensure(obj)
+    modifier.prepare(obj, mod, s)
     # What Bind saves goes on the solver helper, local data even when the mesh is linked.
-    helper = solver_helper.helper(obj, modifier.find(obj))
+    helper = solver_helper.helper(obj, mod)
     for key, value in ((PIN_PROPERTY, np.flatnonzero(pins > 0).tolist() if pins.any() else None),
                        (CAGE_REST_PROPERTY, None if cage_rest is None else cage_rest.ravel().tolist()),
                        (BIND_VOLUME_PROPERTY, None)):   # captured below, from this Bind's input
@@ -83,25 +107,27 @@ def bind(obj, depsgraph):
             helper[key] = value
         elif key in helper:
             del helper[key]
-    forget(obj)
+    forget(d=d)
     depsgraph.update()
-    update(obj, depsgraph, force=True)
-    if node_group.get_input(modifier.find(obj), node_group.FACES_INPUT):
+    update(d, depsgraph, force=True)
+    if node_group.get_input(mod, node_group.FACES_INPUT):
         depsgraph.update()              # the modifier now passes its input's faces along
-        update(obj, depsgraph, force=True)
-    info = status(obj)
+        update(d, depsgraph, force=True)
+    info = status(d)
     if info.error:
-        unbind(obj)
+        unbind(d)
         raise BindError(info.error)
-    state = states[obj.session_uid]
+    state = states[d.key]
     b = state.result.binding if state.result is not None else None
     if b is not None:
         # Target: Bind keeps these: each island's volume as it reached the slot now, in the
         # object's space (the binding measured it in lattice space).
         helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / linalg3.det3(state.matrix[:3, :3])).tolist()
         if s.target == "BIND":
-            update(obj, depsgraph, force=True)
-            info = status(obj)
+            update(d, depsgraph, force=True)
+            info = status(d)
+    if len(modifier.find_all(obj)) > 1:
+        update_object(obj, depsgraph)   # the deformers after this one read its new result
 
     warnings = []
     if b is not None and not b.is_closed:
@@ -125,30 +151,33 @@ def _enabled_before(obj, mod):
     return names
 
 
-def _solved_output(obj, depsgraph, why):
-    """Solve the current frame; (V, 3) float32 slot output, one position per mesh vertex, or
-    BindError (the solve's error, or `why` when the slot's point count is not the mesh's)."""
-    update(obj, depsgraph, force=True)
-    info = status(obj)
+def _solved_output(d, depsgraph, why):
+    """Solve the current frame of deformer `d`; (V, 3) float32 slot output, one position per mesh
+    vertex, or BindError (the solve's error, or `why` when the slot's point count is not the
+    mesh's)."""
+    update(d, depsgraph, force=True)
+    info = status(d)
     if info.error:
         raise BindError(info.error)
-    co = slot_output(obj)
-    n = len(obj.data.vertices)
+    co = slot_output(d)
+    n = len(d.obj.data.vertices)
     if co is None or len(co) != n:
         raise BindError(f"{0 if co is None else len(co)} points reach VP-FFD but the mesh has {n} "
                         f"vertices: {why}")
     return co
 
 
-def save_shape_key(obj, depsgraph, name="VP-FFD"):
-    """Add a shape key holding what the VP-FFD slot gives on the current frame (Blender cannot
-    apply a Geometry Nodes modifier as a shape key). Returns (key name, names of the enabled
-    modifiers before VP-FFD, whose effect the key then includes)."""
+def save_shape_key(target, depsgraph, name="VP-FFD"):
+    """Add a shape key holding what the slot of deformer `target` (or of a mesh object's first)
+    gives on the current frame (Blender cannot apply a Geometry Nodes modifier as a shape key).
+    Returns (key name, names of the enabled modifiers before it, whose effect the key then
+    includes)."""
+    d = deformer_of(target)
+    obj, mod = d.obj, d.mod
     mesh = obj.data
-    mod = modifier.find(obj)
     if mod is None:
         raise BindError("the VP-FFD modifier was removed: Bind again, or Unbind")
-    co = _solved_output(obj, depsgraph, "a shape key needs one position per vertex")
+    co = _solved_output(d, depsgraph, "a shape key needs one position per vertex")
     before = _enabled_before(obj, mod)
     co = co.copy()
     if mesh.shape_keys is None:
@@ -159,26 +188,28 @@ def save_shape_key(obj, depsgraph, name="VP-FFD"):
     return key.name, before
 
 
-def apply(obj, depsgraph):
-    """Make the current deformed shape the mesh's own coordinates, then unbind. Only where the
-    slot's input is the mesh's own coordinates: VP-FFD first among the enabled modifiers, and no
-    shape keys."""
+def apply(target, depsgraph):
+    """Make the current deformed shape of deformer `target` (or of a mesh object's first) the
+    mesh's own coordinates, then unbind it. Only where the slot's input is the mesh's own
+    coordinates: the deformer first among the enabled modifiers, and no shape keys."""
+    d = deformer_of(target)
+    obj = d.obj
     mesh = obj.data
     if mesh.library is not None:
         raise BindError(f"mesh '{mesh.name}' is linked from {mesh.library.filepath}: its coordinates "
                         "cannot be changed here (Save as Shape Key works, or apply in the library)")
     if mesh.shape_keys is not None:
         raise BindError("the mesh has shape keys: applying would only change the basis shape")
-    mod = modifier.find(obj)
+    mod = d.mod
     if mod is not None and not mod.show_viewport:
         raise BindError("the VP-FFD modifier is switched off: switch it on to apply, or Unbind")
     before = _enabled_before(obj, mod)
     if before:
         raise BindError(f"modifiers before VP-FFD ({', '.join(before)}) would be applied with it: "
                         "apply them first, or move VP-FFD to the top")
-    co = _solved_output(obj, depsgraph, "applying needs one position per vertex")
+    co = _solved_output(d, depsgraph, "applying needs one position per vertex")
     co = co.copy()
-    unbind(obj)
-    note_applied(obj)
+    note_applied(d)
+    unbind(d)
     mesh.vertices.foreach_set("co", co.astype(np.float32).ravel())
     mesh.update()

@@ -24,7 +24,7 @@ NODE_GROUP_NAME = "VP-FFD"
 GROUP_TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
 
 
-GROUP_VERSION = 6                 # the tag's value: groups of older versions are rebuilt
+GROUP_VERSION = 7                 # the tag's value: groups of older versions are rebuilt
 
 
 _KIND = "vpffd_tap_kind"     # how the group's tap is made: "INSTANCES" or "POINTS"
@@ -45,6 +45,9 @@ INVERT_INPUT = "Invert Vertex Group"
 FACES_INPUT = "Tap Faces"   # on when the handler needs the faces at the slot (see read_tap)
 
 
+SLOT_INPUT = "Slot"         # the modifier's persistent_uid, stored on its tap (several per stack)
+
+
 TAP_ATTRIBUTE = "vpffd_tap"
 
 
@@ -55,6 +58,11 @@ CORNER_ATTRIBUTES = ("vpffd_c0", "vpffd_c1", "vpffd_c2")   # a triangle's vertex
 
 
 WEIGHT_ATTRIBUTE = "vpffd_weight"
+
+
+# Which VP-FFD modifier made a tap element: a mesh may have several, and the taps of earlier ones
+# pass through the later ones to the end of the stack beside theirs.
+SLOT_ATTRIBUTE = "vpffd_slot"
 
 
 # The tap of Blender 4.4+ packs PACK vertices into every instance (making an instance costs far
@@ -143,9 +151,10 @@ def _int_math(N, link, operation, a, b, c=None):
     return out
 
 
-def _vertex_tap(N, link, mesh, weight, kind):
+def _vertex_tap(N, link, mesh, weight, slot, kind):
     """The tap of the vertices of `mesh` (in vertex order), with the float field `weight`
-    (evaluated on the mesh); every element marked with TAP_ATTRIBUTE. Made with a Points node that
+    (evaluated on the mesh); every element marked with TAP_ATTRIBUTE and SLOT_ATTRIBUTE (the integer
+    socket `slot`). Made with a Points node that
     samples the mesh by index, not Mesh to Points, which copies every attribute of the mesh
     (7-14 ms per evaluation at 163,842 vertices against about 1 ms).
     - kind "POINTS": one point per vertex at its position, the weight as WEIGHT_ATTRIBUTE.
@@ -165,6 +174,7 @@ def _vertex_tap(N, link, mesh, weight, kind):
         link(_sampled(N, link, mesh, "FLOAT_VECTOR", position), points.inputs["Position"])
         tapped = _store(N, link, points.outputs[0], "FLOAT", "POINT", WEIGHT_ATTRIBUTE,
                         _sampled(N, link, mesh, "FLOAT", weight)).outputs[0]
+        tapped = _store(N, link, tapped, "INT", "POINT", SLOT_ATTRIBUTE, slot).outputs[0]
         return points, _store(N, link, tapped, "BOOLEAN", "POINT", TAP_ATTRIBUTE, True)
     link(_int_math(N, link, "DIVIDE_CEIL", count, PACK), points.inputs["Count"])
     tapped = _store(N, link, points.outputs[0], "INT", "POINT", COUNT_ATTRIBUTE, count).outputs[0]
@@ -176,23 +186,27 @@ def _vertex_tap(N, link, mesh, weight, kind):
                         _sampled(N, link, mesh, "FLOAT", weight, index)).outputs[0]
     instances = N.new("GeometryNodeInstanceOnPoints")
     link(tapped, instances.inputs["Points"])
-    return points, _store(N, link, instances.outputs[0], "BOOLEAN", "INSTANCE", TAP_ATTRIBUTE, True)
+    marked = _store(N, link, instances.outputs[0], "INT", "INSTANCE", SLOT_ATTRIBUTE, slot).outputs[0]
+    return points, _store(N, link, marked, "BOOLEAN", "INSTANCE", TAP_ATTRIBUTE, True)
 
 
-def _marked_points(N, link, geometry, mode, marker, kind):
+def _marked_points(N, link, geometry, mode, marker, slot, kind):
     """One tap element per `mode` element of `geometry` (attributes carried along), every one
-    marked with the boolean attribute `marker`: points of radius 0, or for kind "INSTANCES"
-    instances of nothing on them. Returns (the first node, the marking node)."""
+    marked with the boolean attribute `marker` and SLOT_ATTRIBUTE (the integer socket `slot`):
+    points of radius 0, or for kind "INSTANCES" instances of nothing on them. Returns (the first
+    node, the marking node)."""
     points = N.new("GeometryNodeMeshToPoints")
     points.mode = mode
     points.inputs["Radius"].default_value = 0.0
     link(geometry, points.inputs["Mesh"])
     if kind != "INSTANCES":
-        return points, _store(N, link, points.outputs[0], "BOOLEAN", "POINT", marker, True)
+        slotted = _store(N, link, points.outputs[0], "INT", "POINT", SLOT_ATTRIBUTE, slot).outputs[0]
+        return points, _store(N, link, slotted, "BOOLEAN", "POINT", marker, True)
     instances = N.new("GeometryNodeInstanceOnPoints")
     link(points.outputs[0], instances.inputs["Points"])
     instances.location = (0, 0)
-    return points, _store(N, link, instances.outputs[0], "BOOLEAN", "INSTANCE", marker, True)
+    slotted = _store(N, link, instances.outputs[0], "INT", "INSTANCE", SLOT_ATTRIBUTE, slot).outputs[0]
+    return points, _store(N, link, slotted, "BOOLEAN", "INSTANCE", marker, True)
 
 
 def _build(ng):
@@ -211,6 +225,8 @@ def _build(ng):
     _socket(ng, INVERT_INPUT, "NodeSocketBool", description="Invert the vertex group's weights")
     _socket(ng, FACES_INPUT, "NodeSocketBool",
             description="Also pass the input's triangles to VP-FFD (set when it cannot find them)")
+    _socket(ng, SLOT_INPUT, "NodeSocketInt",
+            description="Which VP-FFD modifier of the stack this is (set by VP-FFD)")
     N, link = ng.nodes, ng.links.new
     gin, gout = N.new("NodeGroupInput"), N.new("NodeGroupOutput")
 
@@ -227,6 +243,15 @@ def _build(ng):
     move = N.new("GeometryNodeSetPosition")
     link(gin.outputs[0], move.inputs["Geometry"])
     link(sample.outputs[0], move.inputs["Offset"])
+    # The taps of VP-FFD modifiers earlier in the stack pass through unmoved: a point-cloud tap's
+    # positions are what it carries.
+    earlier = N.new("GeometryNodeInputNamedAttribute")
+    earlier.data_type = "BOOLEAN"
+    earlier.inputs["Name"].default_value = TAP_ATTRIBUTE
+    untapped = N.new("FunctionNodeBooleanMath")
+    untapped.operation = "NOT"
+    link(earlier.outputs["Attribute"], untapped.inputs[0])
+    link(untapped.outputs[0], move.inputs["Selection"])
 
     # Tap: the input's points with their weight: group weight (1 - weight when inverted), or 1
     # when the mesh has no such group, as the Lattice modifier weighs them.
@@ -247,7 +272,7 @@ def _build(ng):
     link(group.outputs["Exists"], pick_exists.inputs["Switch"])
     pick_exists.inputs["False"].default_value = 1.0
     link(pick_invert.outputs[0], pick_exists.inputs["True"])
-    points, mark = _vertex_tap(N, link, gin.outputs[0], pick_exists.outputs[0], kind)
+    points, mark = _vertex_tap(N, link, gin.outputs[0], pick_exists.outputs[0], gin.outputs[SLOT_INPUT], kind)
 
     # Face tap (only when asked): one point per triangle of the triangulated input, carrying its
     # three vertex indices, in the triangle's own corner order.
@@ -267,7 +292,8 @@ def _build(ng):
         store = _store(N, link, geometry, "INT", "FACE", name, vertex.outputs["Vertex Index"])
         geometry = store.outputs[0]
         store.location = (-150 + 200 * k, -700)
-    face_points, face_mark = _marked_points(N, link, geometry, "FACES", FACE_ATTRIBUTE, kind)
+    face_points, face_mark = _marked_points(N, link, geometry, "FACES", FACE_ATTRIBUTE,
+                                            gin.outputs[SLOT_INPUT], kind)
     only_if = N.new("GeometryNodeSwitch")
     only_if.input_type = "GEOMETRY"
     link(gin.outputs[FACES_INPUT], only_if.inputs["Switch"])
@@ -282,7 +308,8 @@ def _build(ng):
                        (group, -900, -450), (inverted, -650, -500), (pick_invert, -450, -450),
                        (pick_exists, -250, -450), (points, 50, -300),
                        (mark, 250, -300), (faces, -450, -700), (face_points, 450, -700),
-                       (face_mark, 650, -700), (only_if, 850, -500), (join, 1050, 0), (gout, 1250, 0)):
+                       (face_mark, 650, -700), (only_if, 850, -500), (join, 1050, 0), (gout, 1250, 0),
+                       (earlier, -650, 150), (untapped, -400, 150)):
         node.location = (x, y)
     ng[GROUP_TAG] = GROUP_VERSION
     ng[_KIND] = kind
@@ -303,13 +330,29 @@ def is_current(ng):
     return ng.get(GROUP_TAG) == GROUP_VERSION and ng.get(_KIND) == tap_kind()
 
 
+def _rebuild(ng):
+    """Rebuild `ng` keeping every modifier's input values: a rebuilt interface has new socket
+    identifiers, and the values are keyed by those (the Solver input names the helper that keeps
+    what Bind saved)."""
+    users = [m for ob in bpy.data.objects if ob.library is None for m in ob.modifiers
+             if m.type == "NODES" and m.node_group == ng]
+    names = {item.identifier: item.name for item in node_inputs.value_sockets(ng)}
+    kept = [(m, {names[k]: v for k, v in node_inputs.values(m).items() if k in names and v is not None})
+            for m in users]
+    _build(ng)
+    for m, values in kept:
+        m.node_group = ng               # the modifier takes the new interface
+        for name, value in values.items():
+            set_input(m, name, value)
+
+
 def offset_node_group():
     """The shared node group (created once per file, rebuilt when made by an older version or
     for another kind of tap, e.g. a file saved by Blender 4.2 opened in 4.4)."""
     for ng in bpy.data.node_groups:
         if ng.get(GROUP_TAG):
             if not is_current(ng) and ng.library is None:
-                _build(ng)
+                _rebuild(ng)
             return ng
     ng = bpy.data.node_groups.new(NODE_GROUP_NAME, "GeometryNodeTree")
     _build(ng)

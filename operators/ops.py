@@ -1,8 +1,13 @@
-"""Operators: bind, unbind, apply, save as shape key, check folds. Thin wrappers over `lifecycle`, `release` and `update`."""
+"""Operators: add a VP-FFD modifier, bind, unbind, apply, save as shape key, check folds. Thin
+wrappers over `lifecycle`, `release` and `update`. Each acts on one deformer of the active mesh:
+the VP-FFD modifier named by its `modifier` property (the panel names the one it shows), or,
+from a script that names none, the first (whose settings are `obj.vpffd`)."""
 import bpy
+from bpy.props import StringProperty
 
+from . import deformers
 from .text import report
-from .lifecycle import BindError, apply, bind, save_shape_key
+from .lifecycle import BindError, add_deformer, apply, bind, save_shape_key
 from .release import unbind
 from .status import status
 from .update import check_folds
@@ -11,18 +16,54 @@ from .update import check_folds
 class _ObjectOperator:
     bl_options = {"REGISTER", "UNDO"}
 
+    modifier: StringProperty(
+        name="Modifier", options={"SKIP_SAVE"},
+        description="The VP-FFD modifier to act on (empty: the first, whose settings are obj.vpffd)")
+
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
         ob = context.object
         return ob is not None and ob.type == "MESH"
 
+    def deformer(self, context):
+        """The deformer this operator acts on (KeyError when its modifier is not a VP-FFD one)."""
+        return deformers.named(context.object, self.modifier)
+
 
 class _BoundOperator(_ObjectOperator):
-    """An operator on a mesh that is bound already."""
+    """An operator on a deformer that is bound already."""
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
-        return super().poll(context) and context.object.vpffd.is_bound
+        return super().poll(context) and deformers.is_bound(context.object)
+
+    def bound_deformer(self, context):
+        """The deformer to act on, or None after reporting why it cannot be acted on."""
+        try:
+            d = self.deformer(context)
+        except KeyError as exc:
+            report(self, "ERROR", str(exc.args[0]))
+            return None
+        if not d.settings.is_bound:
+            report(self, "ERROR", f"{deformers.label(d) or 'VP-FFD'} is not bound: Bind it first")
+            return None
+        return d
+
+
+class OBJECT_OT_vpffd_modifier_add(_ObjectOperator, bpy.types.Operator):
+    """Add a VP-FFD modifier at the end of the stack: a lattice deformation that keeps the volume
+    (pick its lattice and Bind in its panel); a mesh may have any number"""
+    bl_idname = "object.vpffd_modifier_add"
+    bl_label = "VP-FFD Lattice"
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        ob = context.object
+        lattice = next((o for o in context.selected_objects if o.type == "LATTICE"), None)
+        d = add_deformer(ob, {"lattice": lattice} if lattice is not None else None)
+        ob.modifiers.active = d.mod         # the panel shows the new one, as Blender's Add Modifier
+        report(self, "INFO", f"added '{d.mod.name}': pick its lattice and Bind" if lattice is None
+               else f"added '{d.mod.name}' with lattice '{lattice.name}': Bind to deform")
+        return {"FINISHED"}
 
 
 class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
@@ -33,15 +74,17 @@ class OBJECT_OT_vpffd_bind(_ObjectOperator, bpy.types.Operator):
     @classmethod
     def description(cls, context: bpy.types.Context, properties) -> str:
         ob = context.object
-        if ob is not None and ob.type == "MESH" and ob.vpffd.is_bound:
+        if ob is not None and ob.type == "MESH" and deformers.is_bound(ob):
             return ("Bind the mesh again with the current settings (pins, a cage's rest shape); "
                     "the VP-FFD modifier stays where it is in the stack")
         return cls.__doc__
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        ob = context.object
         try:
-            warnings = bind(ob, context.evaluated_depsgraph_get())
+            warnings = bind(self.deformer(context), context.evaluated_depsgraph_get())
+        except KeyError as exc:
+            report(self, "ERROR", str(exc.args[0]))
+            return {"CANCELLED"}
         except (BindError, ValueError) as exc:
             report(self, "ERROR", str(exc))
             return {"CANCELLED"}
@@ -57,7 +100,10 @@ class OBJECT_OT_vpffd_unbind(_BoundOperator, bpy.types.Operator):
     bl_label = "Unbind"
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        unbind(context.object)
+        d = self.bound_deformer(context)
+        if d is None:
+            return {"CANCELLED"}
+        unbind(d)
         return {"FINISHED"}
 
 
@@ -67,8 +113,11 @@ class OBJECT_OT_vpffd_apply(_BoundOperator, bpy.types.Operator):
     bl_label = "Apply"
 
     def execute(self, context: bpy.types.Context) -> set[str]:
+        d = self.bound_deformer(context)
+        if d is None:
+            return {"CANCELLED"}
         try:
-            apply(context.object, context.evaluated_depsgraph_get())
+            apply(d, context.evaluated_depsgraph_get())
         except (BindError, ValueError) as exc:
             report(self, "ERROR", str(exc))
             return {"CANCELLED"}
@@ -82,9 +131,11 @@ class OBJECT_OT_vpffd_save_shape_key(_BoundOperator, bpy.types.Operator):
     bl_label = "Save as Shape Key"
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        ob = context.object
+        d = self.bound_deformer(context)
+        if d is None:
+            return {"CANCELLED"}
         try:
-            name, before = save_shape_key(ob, context.evaluated_depsgraph_get())
+            name, before = save_shape_key(d, context.evaluated_depsgraph_get())
         except (BindError, ValueError) as exc:
             report(self, "ERROR", str(exc))
             return {"CANCELLED"}
@@ -103,14 +154,30 @@ class OBJECT_OT_vpffd_check_folds(_BoundOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def execute(self, context: bpy.types.Context) -> set[str]:
-        ob = context.object
-        n = check_folds(ob, context.evaluated_depsgraph_get())
+        d = self.bound_deformer(context)
+        if d is None:
+            return {"CANCELLED"}
+        n = check_folds(d, context.evaluated_depsgraph_get())
         if n is None:
-            report(self, "ERROR", f"{status(ob).error}")
+            report(self, "ERROR", f"{status(d).error}")
             return {"CANCELLED"}
         report(self, "WARNING" if n else "INFO", f"{n:,} inverted vertices")
         return {"FINISHED"}
 
 
-classes = (OBJECT_OT_vpffd_bind, OBJECT_OT_vpffd_unbind, OBJECT_OT_vpffd_apply,
-           OBJECT_OT_vpffd_save_shape_key, OBJECT_OT_vpffd_check_folds)
+def _modifier_menu(self, context):
+    if context.object is not None and context.object.type == "MESH":
+        self.layout.operator(OBJECT_OT_vpffd_modifier_add.bl_idname, icon="MOD_LATTICE")
+
+
+classes = (OBJECT_OT_vpffd_modifier_add, OBJECT_OT_vpffd_bind, OBJECT_OT_vpffd_unbind,
+           OBJECT_OT_vpffd_apply, OBJECT_OT_vpffd_save_shape_key, OBJECT_OT_vpffd_check_folds)
+
+
+def register():
+    """Add Modifier > Deform offers VP-FFD Lattice beside Blender's Lattice."""
+    bpy.types.OBJECT_MT_modifier_add_deform.append(_modifier_menu)
+
+
+def unregister():
+    bpy.types.OBJECT_MT_modifier_add_deform.remove(_modifier_menu)

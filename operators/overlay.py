@@ -11,7 +11,8 @@ import bpy
 import numpy as np
 
 from ..vpffd_addon import wireframe
-from .bound import states
+from . import deformers
+from .bound import state_of
 from .status import status
 from .text import percent
 from .update import bound_objects
@@ -30,35 +31,39 @@ def lines(points, edges):
     return np.asarray(points, float)[np.asarray(edges, np.int64)].reshape(-1, 3)
 
 
-def overlay_geometry(obj):
+def overlay_geometry(target):
     """(corrected lattice or cage points in world space (N, 3), edges (E, 2), label) of the last
-    solve, or None before the first one."""
-    state = states.get(obj.session_uid)
+    solve of deformer `target` (or of a mesh object's first), or None before the first one."""
+    state = state_of(target)
     if state is None or getattr(state, "overlay", None) is None:
         return None
-    info = status(obj)
+    info = status(target)
     if info.error or info.paused or info.switched_off:
         return None     # the mesh shows no correction now: drawing the last one would be false
     label = f"{percent(info.volume_percent)} volume" if info.volume_percent is not None else ""
     return state.overlay + (label,)
 
 
-def falloff_geometry(obj):
+def falloff_geometry(target):
     """(corners in world space (8, 3), edges (12, 2)) of the box where the falloff of the last
     solve ends, or None (no falloff, or nothing shown now)."""
-    state = states.get(obj.session_uid)
-    if overlay_geometry(obj) is None or getattr(state, "falloff_box", None) is None:
+    state = state_of(target)
+    if overlay_geometry(target) is None or getattr(state, "falloff_box", None) is None:
         return None
     return state.falloff_box, wireframe.BOX_EDGES
 
 
 def _visible(context):
+    """(object, deformer, drawn) of every bound deformer whose overlay is on and shown."""
     scene = context.scene
     for ob in bound_objects(scene):
-        if ob.vpffd.show_overlay and ob.visible_get():
-            drawn = overlay_geometry(ob)
-            if drawn is not None:
-                yield ob, drawn
+        if not ob.visible_get():
+            continue
+        for d in deformers.bound(ob):
+            if d.settings.show_overlay:
+                drawn = overlay_geometry(d)
+                if drawn is not None:
+                    yield ob, d, drawn
 
 
 def _draw_lattices():
@@ -70,11 +75,11 @@ def _draw_lattices():
         gpu.state.blend_set("ALPHA")
         gpu.state.line_width_set(1.5)
         gpu.state.point_size_set(5.0)
-        for ob, (points, edges, _) in _visible(context):
+        for _ob, d, (points, edges, _) in _visible(context):
             shader.uniform_float("color", LATTICE_COLOUR)
             batch_for_shader(shader, "LINES", {"pos": lines(points, edges).astype(np.float32)}).draw(shader)
             batch_for_shader(shader, "POINTS", {"pos": points.astype(np.float32)}).draw(shader)
-            box = falloff_geometry(ob)
+            box = falloff_geometry(d)
             if box is not None:
                 shader.uniform_float("color", FALLOFF_COLOUR)
                 batch_for_shader(shader, "LINES", {"pos": lines(*box).astype(np.float32)}).draw(shader)
@@ -91,7 +96,7 @@ def _draw_labels():
         region, rv3d = context.region, context.region_data
         if region is None or rv3d is None:
             return
-        for ob, (_, _, text) in _visible(context):
+        for ob, _d, (_, _, text) in _visible(context):
             at = location_3d_to_region_2d(region, rv3d, ob.matrix_world.translation)
             if at is None:
                 continue

@@ -3,7 +3,7 @@
 Bake and Status, with split properties and no animation decorators."""
 import bpy
 
-from . import bake_ops, cage, compiled_backend, modifier
+from . import bake_ops, cage, compiled_backend, deformers
 from .cache_modifier import using_cache
 from ..vpffd_addon import outside as outside_modes
 from .status_line import applied_lattice, headline, status_lines
@@ -12,9 +12,24 @@ from .saved_data import JACOBIAN_ATTRIBUTE
 from .status import outside_message, status
 
 
-def _settings(context):
+def _deformer(context):
+    """The deformer the panel shows (`deformers.shown`: the active VP-FFD modifier, else the
+    first), or None for what is not a mesh to deform."""
     ob = context.object
-    return None if ob is None or ob.type != "MESH" or cage.is_cage(ob) else ob.vpffd
+    return None if ob is None or ob.type != "MESH" or cage.is_cage(ob) else deformers.shown(ob)
+
+
+def _settings(context):
+    d = _deformer(context)
+    return None if d is None else d.settings
+
+
+def button(layout, d, idname, **kwargs):
+    """An operator button acting on deformer `d` (its modifier named, when it has one)."""
+    props = layout.operator(idname, **kwargs)
+    if d.mod is not None:
+        props.modifier = d.mod.name
+    return props
 
 
 def message(layout, context, text, icon="NONE"):
@@ -76,9 +91,16 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
         if cage.is_cage(ob):
             self.draw_cage(layout, context, ob)
             return
-        s = ob.vpffd
+        d = deformers.shown(ob)
+        s = d.settings
+        which = deformers.label(d)
+        if which:
+            # Several VP-FFD modifiers: say whose settings these are, as the Geometry Nodes
+            # editor follows the active modifier.
+            message(layout, context, f"showing VP-FFD modifier {which}: click another one's "
+                                     "header to show its settings", icon="MODIFIER")
         # First line: what VP-FFD does to this object now (details in the Status sub-panel).
-        text, icon = headline(status(ob), s.is_bound, s.is_bound and using_cache(ob),
+        text, icon = headline(status(d), s.is_bound, s.is_bound and using_cache(ob),
                               applied_lattice(s), compiled_backend.status()[0])
         message(layout, context, text, icon=icon)
         col = layout.column()
@@ -87,17 +109,19 @@ class OBJECT_PT_vpffd(_Panel, bpy.types.Panel):
         row.prop_search(s, "vertex_group", ob, "vertex_groups", text="Vertex Group")
         row.prop(s, "invert_vertex_group", text="", icon="ARROW_LEFTRIGHT")
         col.prop(s, "strength", slider=True)
-        if s.is_bound and modifier.find(ob) is not None and not using_cache(ob):
+        if s.is_bound and d.mod is not None and not using_cache(ob):
             col.prop(s, "enabled")     # on the cache, "Use Live Solve" switches back instead
 
         row = layout.row(align=True)
         if s.is_bound:
-            row.operator("object.vpffd_bind", text="Re-bind", icon="FILE_REFRESH")
-            row.operator("object.vpffd_apply", icon="CHECKMARK")
-            row.operator("object.vpffd_unbind", icon="X")
-            layout.operator("object.vpffd_save_shape_key", icon="SHAPEKEY_DATA")
+            button(row, d, "object.vpffd_bind", text="Re-bind", icon="FILE_REFRESH")
+            button(row, d, "object.vpffd_apply", icon="CHECKMARK")
+            button(row, d, "object.vpffd_unbind", icon="X")
+            button(layout, d, "object.vpffd_save_shape_key", icon="SHAPEKEY_DATA")
         else:
-            row.operator("object.vpffd_bind", icon="MOD_LATTICE")
+            button(row, d, "object.vpffd_bind", icon="MOD_LATTICE")
+        if s.is_bound:
+            layout.operator("object.vpffd_modifier_add", text="Add Another VP-FFD Lattice", icon="ADD")
 
     @staticmethod
     def draw_cage(layout, context, ob):
@@ -120,14 +144,15 @@ class OBJECT_PT_vpffd_cage(_SubPanel, bpy.types.Panel):
         return s is not None and cage.is_cage(s.lattice)
 
     def draw(self, context: bpy.types.Context) -> None:
-        s = context.object.vpffd
+        d = _deformer(context)
+        s = d.settings
         col = self.draw_split().column()
         col.prop(s, "cage_depth")
         outside_row(col, s, "cage_outside", "cage")
         if "cage" not in outside_modes.mode(s.outside).kinds:
             message(col, context, "Outside: Falloff is for lattices (a cage's region is not a box): "
                                   "this cage's own Outside applies", icon="INFO")
-        info = status(context.object)
+        info = status(d)
         if s.is_bound and info.outside:
             message(col, context, outside_message(info, True), icon="INFO")
 
@@ -141,14 +166,14 @@ class OBJECT_PT_vpffd_outside(_SubPanel, bpy.types.Panel):
         return s is not None and not cage.is_cage(s.lattice)
 
     def draw(self, context: bpy.types.Context) -> None:
-        ob = context.object
-        s = ob.vpffd
+        d = _deformer(context)
+        s = d.settings
         col = self.draw_split().column()
         outside_row(col, s, "outside", "lattice")
         sub = col.column()
         sub.active = outside_modes.mode(s.outside).has_distance
         sub.prop(s, "falloff_distance")
-        info = status(ob)
+        info = status(d)
         if s.is_bound and info.outside:
             message(col, context, outside_message(info, False), icon="INFO")
 
@@ -157,8 +182,8 @@ class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
     bl_label = "Correction"
 
     def draw(self, context: bpy.types.Context) -> None:
-        ob = context.object
-        s = ob.vpffd
+        d = _deformer(context)
+        s = d.settings
         col = self.draw_split().column()
         col.prop(s, "axes")
         sub = col.column()
@@ -167,7 +192,7 @@ class OBJECT_PT_vpffd_correction(_SubPanel, bpy.types.Panel):
         sub.prop(s, "volume_scale")
         sub.prop(s, "target")
         if s.target == "BIND" and s.is_bound:
-            info = status(ob)
+            info = status(d)
             if info.input_percent is not None:
                 message(sub, context, f"what reaches VP-FFD has {percent(info.input_percent)} of "
                                       "the volume at Bind", icon="INFO")
@@ -185,7 +210,7 @@ class OBJECT_PT_vpffd_pins(_SubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
-        s = ob.vpffd
+        s = _settings(context)
         col = self.draw_split().column()
         col.prop(s, "pin_mode")
         if s.pin_mode == "VERTEX":
@@ -203,19 +228,20 @@ class OBJECT_PT_vpffd_folds(_BoundSubPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw_header(self, context: bpy.types.Context) -> None:
-        self.layout.prop(context.object.vpffd, "use_fold_attribute", text="")
+        self.layout.prop(_settings(context), "use_fold_attribute", text="")
 
     def draw(self, context: bpy.types.Context) -> None:
         layout = self.draw_split()
-        info = status(context.object)
-        if context.object.vpffd.use_fold_attribute:
+        d = _deformer(context)
+        info = status(d)
+        if d.settings.use_fold_attribute:
             message(layout, context, f"the attribute '{JACOBIAN_ATTRIBUTE}' holds the "
                                      "Jacobian determinant of every vertex")
         if info.folds is not None and not (info.error or info.paused or info.switched_off):
             message(layout, context, f"{count(info.folds)} inverted vertices" if info.folds
                     else "the lattice does not fold space here",
                     icon="ERROR" if info.folds else "CHECKMARK")
-        layout.operator("object.vpffd_check_folds", icon="VIEWZOOM")
+        button(layout, d, "object.vpffd_check_folds", icon="VIEWZOOM")
 
 
 class OBJECT_PT_vpffd_overlay(_BoundSubPanel, bpy.types.Panel):
@@ -223,7 +249,7 @@ class OBJECT_PT_vpffd_overlay(_BoundSubPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw_header(self, context: bpy.types.Context) -> None:
-        self.layout.prop(context.object.vpffd, "show_overlay", text="")
+        self.layout.prop(_settings(context), "show_overlay", text="")
 
     def draw(self, context: bpy.types.Context) -> None:
         message(self.layout, context, "draws the control points the solver used and the volume "
@@ -243,7 +269,8 @@ class OBJECT_PT_vpffd_status(_BoundSubPanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         ob = context.object
-        for text, icon in status_lines(status(ob), using_cache(ob), ob.vpffd.backend):
+        d = _deformer(context)
+        for text, icon in status_lines(status(d), using_cache(ob), d.settings.backend):
             message(self.layout, context, text, icon=icon)
 
 classes = (OBJECT_PT_vpffd, OBJECT_PT_vpffd_cage, OBJECT_PT_vpffd_outside, OBJECT_PT_vpffd_correction,

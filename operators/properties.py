@@ -1,9 +1,10 @@
-"""Per-object settings of VP-FFD (`obj.vpffd`), saved with the .blend file."""
+"""The settings of each VP-FFD deformer, saved with the .blend file: `obj.vpffd` for the first,
+`obj.vpffd_extra` for every further VP-FFD modifier of the mesh (deformers.py pairs them)."""
 import bpy
-from bpy.props import (BoolProperty, EnumProperty, FloatProperty, FloatVectorProperty,
-                       IntProperty, PointerProperty, StringProperty)
+from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
+                       FloatVectorProperty, IntProperty, PointerProperty, StringProperty)
 
-from . import modifier
+from . import deformers, modifier
 from ..vpffd_addon import outside as outside_modes
 
 AXES_ITEMS = [
@@ -28,12 +29,12 @@ def _poll_empty(self, obj):
 
 
 def _get_enabled(self):
-    mod = modifier.find(self.id_data)
+    mod = deformers.modifier_of(self.id_data, self)
     return bool(mod and mod.show_viewport)
 
 
 def _set_enabled(self, value):
-    mod = modifier.find(self.id_data)
+    mod = deformers.modifier_of(self.id_data, self)
     if mod is not None:
         mod.show_viewport = value
         mod.show_render = value
@@ -48,12 +49,12 @@ def _redraw(self, context):
 
 def _settings_changed(self, context):
     from .update import request_update
-    modifier.sync_inputs(self.id_data)
+    modifier.sync_inputs(deformers.modifier_of(self.id_data, self), self)
     request_update(self.id_data)
 
 
 def _lattice_changed(self, context):
-    modifier.set_lattice(self.id_data, self.lattice)
+    modifier.set_lattice(deformers.modifier_of(self.id_data, self), self.lattice)
     _settings_changed(self, context)
 
 
@@ -142,6 +143,10 @@ class VPFFD_Settings(bpy.types.PropertyGroup):
         description="Show the VP-FFD modifier in viewport and render")
     is_bound: BoolProperty(name="Bound", default=False, options={"HIDDEN"},
                            description="Whether the mesh is bound to its lattice")
+    modifier_uid: IntProperty(
+        name="Modifier", default=0, options={"HIDDEN"},
+        description="The persistent_uid of the VP-FFD modifier these settings belong to (0: the "
+                    "first VP-FFD modifier that no other settings name)")
     applied_lattice: StringProperty(
         name="Applied Lattice", options={"HIDDEN"},
         description="The lattice whose deformation Apply made the mesh's own shape: Bind would "
@@ -180,7 +185,11 @@ classes = (VPFFD_Settings,)
 
 def register():
     bpy.types.Object.vpffd = PointerProperty(type=VPFFD_Settings, override={"LIBRARY_OVERRIDABLE"})
+    bpy.types.Object.vpffd_extra = CollectionProperty(
+        type=VPFFD_Settings, override={"LIBRARY_OVERRIDABLE", "USE_INSERTION"},
+        description="Settings of the mesh's further VP-FFD modifiers (the first one's: vpffd)")
 
 
 def unregister():
+    del bpy.types.Object.vpffd_extra
     del bpy.types.Object.vpffd

@@ -8,7 +8,7 @@ from .. import vpffd_addon as vp
 from ..vpffd_addon import outside as outside_modes
 from ..vpffd_addon import backends, wireframe
 from ..vpffd_addon.offsets import float32_offsets
-from . import compiled_backend, meshio, modifier, node_group, solver_helper
+from . import compiled_backend, meshio, node_group, solver_helper
 from .saved_data import JACOBIAN_ATTRIBUTE, float_attribute
 from .status import set_status
 
@@ -16,14 +16,17 @@ from .status import set_status
 FOLD_CHECK_MAX_VERTS = 5000         # above this, folds are counted on request only (Check Folds)
 
 
-def zero_offsets(obj, state=None):
-    """Show the slot's input undeformed (a defined result for a frame that cannot be solved)."""
-    mod = modifier.find(obj)
+def zero_offsets(d, state=None):
+    """Show deformer `d`'s slot input undeformed (a defined result for a frame that cannot be
+    solved)."""
+    mod = d.mod
     helper = node_group.get_input(mod, node_group.SOLVER_INPUT) if mod is not None else None
     if helper is None or helper.get(solver_helper.HELPER_TAG) is None:
         return
     if len(helper.data.vertices):
         solver_helper.write_offsets(helper, np.zeros((0, 3), np.float32))
+        if state is not None:
+            state.wrote = True
     if state is not None:
         state.written = None
 
@@ -35,11 +38,13 @@ def _write(state, helper, offsets32, changed):
         return
     solver_helper.write_offsets(helper, offsets32)
     state.written = offsets32
+    state.wrote = True
 
 
-def publish(obj, state, frame, result, t0):
-    """Write the offsets to the solver helper, keep what the overlay and the next update need,
-    and give the panel its figures."""
+def publish(d, state, frame, result, t0):
+    """Write deformer `d`'s offsets to its solver helper, keep what the overlay and the next
+    update need, and give the panel its figures."""
+    obj = d.obj
     X = frame.inputs.positions
     lattice = frame.inputs.lattice
     core_seconds = time.perf_counter() - t0
@@ -107,7 +112,7 @@ def publish(obj, state, frame, result, t0):
             info["folds"] = int((det * state.orientation <= 0).sum())
         elif binding.n_verts <= FOLD_CHECK_MAX_VERTS:
             info["folds"] = count_folds(binding, result.points, state.orientation)
-    set_status(obj, **info)
+    set_status(d, **info)
 
 
 def encloses_nothing(result):

@@ -1,14 +1,16 @@
-"""What the last update of each bound object found, for the panel, the status line and scripts:
-the typed `Status`, kept per object, and the words for vertices outside the lattice."""
+"""What the last update of each bound deformer found, for the panel, the status line and scripts:
+the typed `Status`, kept per deformer (deformers.py), and the words for vertices outside the
+lattice."""
 import dataclasses
 import logging
 from typing import Optional
 
 from ..vpffd_addon import outside as outside_modes
+from . import deformers
 
 log = logging.getLogger(__name__)
 
-_stats = {}   # object session_uid -> Status shown by the panel
+_stats = {}   # deformer key (object session_uid, modifier uid) -> Status shown by the panel
 
 
 @dataclasses.dataclass
@@ -47,24 +49,34 @@ class Status:
     awaits_kernels: bool = False           #: NumPy solved while the compiled kernels compiled
 
 
-def status(obj):
-    """The typed `Status` of the object's last update (an empty one before any)."""
-    return _stats.get(obj.session_uid) or Status()
+def deformer_of(target):
+    """`target` itself when it is a `deformers.Deformer`; for a mesh object, its first deformer
+    (what scripts written for one VP-FFD modifier per mesh mean)."""
+    return target if isinstance(target, deformers.Deformer) else deformers.first(target)
 
 
-def stats(obj):
-    """`status(obj)` as a dict of the fields that are set (for scripts)."""
-    return {k: v for k, v in dataclasses.asdict(status(obj)).items() if v is not None}
+def status(target):
+    """The typed `Status` of the last update of deformer `target` (a `deformers.Deformer`, or a
+    mesh object for its first deformer); an empty one before any."""
+    return _stats.get(deformer_of(target).key) or Status()
 
 
-_reported = {}  # object session_uid -> last error printed, so a failing frame range logs once
+def stats(target):
+    """`status(target)` as a dict of the fields that are set (for scripts)."""
+    return {k: v for k, v in dataclasses.asdict(status(target)).items() if v is not None}
 
 
-def set_status(obj, **values):
-    st = _stats[obj.session_uid] = Status(**values)
-    if st.error and _reported.get(obj.session_uid) != st.error:
-        log.warning("%s: %s", obj.name, st.error)  # the console and farm logs, once per new problem
-    _reported[obj.session_uid] = st.error
+_reported = {}  # deformer key -> last error printed, so a failing frame range logs once
+
+
+def set_status(d, **values):
+    """Record the `Status` of deformer `d`'s update (and log a new error once)."""
+    d = deformer_of(d)
+    st = _stats[d.key] = Status(**values)
+    if st.error and _reported.get(d.key) != st.error:
+        where = d.obj.name + (f" ({d.mod.name})" if d.mod is not None and deformers.label(d) else "")
+        log.warning("%s: %s", where, st.error)  # the console and farm logs, once per new problem
+    _reported[d.key] = st.error
     return st
 
 
@@ -81,11 +93,10 @@ def outside_message(info, is_cage):
     return f"{info.outside:,} of {info.n_verts:,} vertices lie outside {where} ({what})"
 
 
-def forget_status(obj=None):
-    """Drop the status of one object (or of all)."""
-    if obj is None:
-        _stats.clear()
-        _reported.clear()
-    else:
-        for table in (_stats, _reported):
-            table.pop(obj.session_uid, None)
+def forget_status(obj=None, key=None):
+    """Drop the status of one deformer (`key`), of every deformer of `obj`, or of all."""
+    for table in (_stats, _reported):
+        if obj is None and key is None:
+            table.clear()
+        for k in [k for k in table if k == key or (obj is not None and k[0] == obj.session_uid)]:
+            del table[k]

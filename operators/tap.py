@@ -3,7 +3,7 @@ triangles), from the end of the evaluated object's stack (node_group.py makes it
 import numpy as np
 
 from .node_group import (CORNER_ATTRIBUTES, COUNT_ATTRIBUTE, FACE_ATTRIBUTE, PACK, PACKED_POSITIONS,
-                         PACKED_WEIGHTS, TAP_ATTRIBUTE, WEIGHT_ATTRIBUTE)
+                         PACKED_WEIGHTS, SLOT_ATTRIBUTE, TAP_ATTRIBUTE, WEIGHT_ATTRIBUTE)
 
 
 def _tap_cloud(ob_eval, depsgraph):
@@ -28,14 +28,30 @@ def _tap_cloud(ob_eval, depsgraph):
     return None, None, False
 
 
-def _packed_tap(attrs, n):
-    """(is_tap (n,) bool, positions (V, 3) float32, weights (V,) float32) of a packed instance
-    tap (see PACK), or None when its attributes are missing."""
-    mark, count = attrs.get(TAP_ATTRIBUTE), attrs.get(COUNT_ATTRIBUTE)
-    if mark is None or count is None:
+def _marked(attrs, name, n, slot):
+    """(n,) bool: the elements marked with boolean attribute `name` that VP-FFD modifier `slot`
+    made (every marked one for slot None), or None when the mark is missing."""
+    mark = attrs.get(name)
+    if mark is None:
         return None
-    is_tap = np.empty(n, bool)
-    mark.data.foreach_get("value", is_tap)
+    marked = np.empty(n, bool)
+    mark.data.foreach_get("value", marked)
+    if slot is not None:
+        made_by = attrs.get(SLOT_ATTRIBUTE)
+        if made_by is None:
+            return None
+        slots = np.empty(n, np.int32)
+        made_by.data.foreach_get("value", slots)
+        marked &= slots == np.int32(slot)
+    return marked
+
+
+def _packed_tap(attrs, n, slot):
+    """(is_tap (n,) bool, positions (V, 3) float32, weights (V,) float32) of a packed instance
+    tap (see PACK) of VP-FFD modifier `slot`, or None when its attributes are missing."""
+    is_tap, count = _marked(attrs, TAP_ATTRIBUTE, n, slot), attrs.get(COUNT_ATTRIBUTE)
+    if is_tap is None or count is None:
+        return None
     m = int(is_tap.sum())
     if m == 0:
         return None
@@ -60,9 +76,10 @@ def _packed_tap(attrs, n):
     return is_tap, co[:V], w[:V]
 
 
-def read_tap(ob_eval, depsgraph):
+def read_tap(ob_eval, depsgraph, slot=None):
     """(positions (V, 3) float32, weights (V,) float32, triangles (F, 3) int64 or None) of the
-    geometry that reached the VP-FFD slot in this evaluation, in the object's space; the
+    geometry that reached the slot of VP-FFD modifier `slot` (its persistent_uid; None: the only
+    one) in this evaluation, in the object's space; the
     triangles only while the modifier's Tap Faces input is on. None when no tap reached the end of
     the stack (the modifier is off, or a later Geometry Nodes modifier dropped point clouds)."""
     cloud, _alive, from_instances = _tap_cloud(ob_eval, depsgraph)
@@ -71,28 +88,27 @@ def read_tap(ob_eval, depsgraph):
     attrs = cloud.attributes
     if from_instances:
         n = len(attrs.get(TAP_ATTRIBUTE).data)
-        packed = _packed_tap(attrs, n)
+        packed = _packed_tap(attrs, n, slot)
         if packed is None:
             return None
         is_tap, co, w = packed
     else:
-        position, weight, mark = attrs.get("position"), attrs.get(WEIGHT_ATTRIBUTE), attrs.get(TAP_ATTRIBUTE)
-        if position is None or mark is None:
+        position, weight = attrs.get("position"), attrs.get(WEIGHT_ATTRIBUTE)
+        if position is None:
             return None
         n = len(position.data)
+        is_tap = _marked(attrs, TAP_ATTRIBUTE, n, slot)
+        if is_tap is None:
+            return None
         co = np.empty(n * 3, np.float32)
         position.data.foreach_get("vector", co)
         w = np.ones(n, np.float32)
         if weight is not None and weight.data_type == "FLOAT":
             weight.data.foreach_get("value", w)
-        is_tap = np.empty(n, bool)
-        mark.data.foreach_get("value", is_tap)
     co = co.reshape(-1, 3)
     tris = None
-    face_mark = attrs.get(FACE_ATTRIBUTE)
-    if face_mark is not None:
-        is_face = np.empty(n, bool)
-        face_mark.data.foreach_get("value", is_face)
+    is_face = _marked(attrs, FACE_ATTRIBUTE, n, slot)
+    if is_face is not None:
         corners = []
         for name in CORNER_ATTRIBUTES:
             attr = attrs.get(name)

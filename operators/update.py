@@ -1,4 +1,4 @@
-"""The update of bound objects, from the depsgraph handler (`update_scene`) or an operator
+"""The update of bound deformers, from the depsgraph handler (`update_scene`) or an operator
 (`update`): read what Blender hands over (`frame_read.read`), evaluate the core's pipeline on it
 (`_evaluate`), publish the result (`publish.publish`). Never raises into Blender."""
 import dataclasses
@@ -6,64 +6,114 @@ import time
 
 import numpy as np
 
-from . import compiled_backend, modifier
+from . import compiled_backend, deformers, node_group
 from .bound import Bound, states
 from .frame_read import read
 from .publish import count_folds, encloses_nothing, publish, zero_offsets
 from .release import release
-from .status import set_status, status
+from .status import deformer_of, set_status, status
 
 
-def update(obj, depsgraph, force=False):
-    """Solve the current frame for a bound object and write its offsets. Never raises: problems
-    go to the panel (`status(obj).error`) and the console. Returns True when a solve ran.
-    `force` solves even when the inputs did not change and the modifier is switched off (Bind,
-    Apply, Check Folds and Bake need the solve)."""
+def update(target, depsgraph, force=False):
+    """Solve the current frame for bound deformer `target` (a `deformers.Deformer`, or a mesh
+    object for its first deformer) and write its offsets. Never raises: problems go to the panel
+    (`status(target).error`) and the console. Returns True when a solve ran. `force` solves even
+    when the inputs did not change and the modifier is switched off (Bind, Apply, Check Folds and
+    Bake need the solve)."""
     # Overflow is detected on the results and reported in words; NumPy's own warnings would only
     # repeat it on the console for every frame.
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        return _update(obj, depsgraph, force)
+        return _update(deformer_of(target), depsgraph, force)
 
 
-def _update(obj, depsgraph, force, helpers_taken=None):
-    """One update in three steps: read what Blender hands over (`read`), evaluate the core's
-    pipeline on it (`_evaluate`), publish the result: offsets, panel figures, overlay (`publish`)."""
+def _update(d, depsgraph, force, helpers_taken=None):
+    """One update of deformer `d` in three steps: read what Blender hands over (`read`), evaluate
+    the core's pipeline on it (`_evaluate`), publish the result: offsets, panel figures, overlay
+    (`publish`)."""
     state = None
     try:
-        mod = _slot_to_solve(obj, depsgraph, force)
+        mod = _slot_to_solve(d, depsgraph, force)
         if mod is None:
             return False
-        state = states.get(obj.session_uid)
+        state = states.get(d.key)
         if state is None:
-            state = states[obj.session_uid] = Bound()
-        frame = read(obj, state, mod, depsgraph, helpers_taken)
+            state = states[d.key] = Bound()
+        state.wrote = False
+        frame = read(d, state, depsgraph, helpers_taken)
         if frame is None or (not force and _unchanged(state, frame)):
             return False
         t0 = time.perf_counter()
         result = _evaluate(state, frame)
-        publish(obj, state, frame, result, t0)
+        publish(d, state, frame, result, t0)
         return True
     except Exception as exc:  # a handler must never raise into Blender
         try:
-            zero_offsets(obj, state)   # a defined result: the slot's input, undeformed
+            zero_offsets(d, state)   # a defined result: the slot's input, undeformed
         except Exception:
             pass
         if state is not None:
             state.signature = None
-        set_status(obj, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
+        set_status(d, error=f"{type(exc).__name__}: {exc}" if not isinstance(exc, ValueError) else str(exc))
         return False
 
 
-def update_scene(scene, depsgraph):
-    taken = set()   # each object's modifier gets a solver helper of its own (duplicates share one)
-    for ob in bound_objects(scene):
+def update_object(obj, depsgraph, force=False, helpers_taken=None):
+    """Update every bound deformer of `obj`, in stack order. New offsets of one change what
+    reaches the VP-FFD modifiers after it, so the object is evaluated again before those read
+    their input: a frame's result never waits for a later handler call (a render calls the frame
+    handler once). Returns True when a solve ran."""
+    if depsgraph.mode != "RENDER" and (len(obj.modifiers) > 1 or len(obj.vpffd_extra)) \
+            and _adopt_copies(obj):
+        return False        # the copy's tap is its own from the next evaluation on
+    solved = False
+    found = deformers.bound(obj)
+    for k, d in enumerate(found):
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            _update(ob, depsgraph, False, taken)
+            solved |= _update(d, depsgraph, force, helpers_taken)
+        state = states.get(d.key)
+        if state is not None and state.wrote and any(later.mod is not None for later in found[k + 1:]):
+            depsgraph.update()
+    return solved
+
+
+def update_scene(scene, depsgraph):
+    taken = set()   # each modifier gets a solver helper of its own (duplicates share one)
+    for ob in bound_objects(scene):
+        update_object(ob, depsgraph, False, taken)
+
+
+def _adopt_copies(obj):
+    """Give a VP-FFD modifier that no settings name (a copy of another, made in the stack with
+    Duplicate or Copy to Selected) settings of its own, copied from the deformer it was copied
+    from but not bound, its own slot and no offsets (it would add those of the helper it shares):
+    it deforms nothing until it is bound, and its panel offers Bind. The settings of such a copy
+    go when it is removed unbound. Returns True when a modifier changed (the object then waits for its next evaluation)."""
+    if obj.library is not None:
+        return False
+    mods = deformers.modifier.find_all(obj)
+    uids = {m.persistent_uid for m in mods}
+    for k in reversed(range(len(deformers.extras(obj)))):
+        entry = obj.vpffd_extra[k]
+        if not entry.is_bound and entry.modifier_uid not in uids:
+            obj.vpffd_extra.remove(k)   # the settings of a removed, unbound copy
+    changed = False
+    for m in mods:
+        if deformers.settings_of(obj, m, mods) is None:
+            solver = node_group.get_input(m, node_group.SOLVER_INPUT)
+            source = next((d for d in deformers.all_of(obj) if d.mod is not None and d.mod != m
+                           and node_group.get_input(d.mod, node_group.SOLVER_INPUT) == solver), None)
+            s = deformers.claim(obj, m)
+            if source is not None:
+                deformers.copy_settings(source.settings, s)
+            node_group.set_input(m, node_group.SOLVER_INPUT, None)
+            deformers.modifier.sync_inputs(m, s)
+            changed = True
+    return changed
 
 
 def request_update(obj):
     """Settings changed: have the next depsgraph update recompute this object."""
-    if getattr(obj, "type", None) == "MESH" and obj.vpffd.is_bound:
+    if getattr(obj, "type", None) == "MESH" and deformers.is_bound(obj):
         obj.update_tag()
 
 
@@ -71,7 +121,7 @@ def request_update(obj):
 
 
 def bound_objects(scene):
-    return [ob for ob in scene.objects if ob.type == "MESH" and ob.vpffd.is_bound]
+    return [ob for ob in scene.objects if ob.type == "MESH" and deformers.is_bound(ob)]
 
 
 def _evaluated_here(obj, depsgraph):
@@ -102,40 +152,40 @@ def _renders(obj, view_layer):
     return False
 
 
-def _slot_to_solve(obj, depsgraph, force):
-    """The VP-FFD modifier of `obj` when this evaluation should solve it; else None, with the
-    panel told why (removed, switched off, hidden)."""
-    if not obj.vpffd.is_bound:
+def _slot_to_solve(d, depsgraph, force):
+    """The VP-FFD modifier of deformer `d` when this evaluation should solve it; else None, with
+    the panel told why (removed, switched off, hidden)."""
+    if not d.settings.is_bound:
         return None
-    mod = modifier.find(obj)
+    obj, mod = d.obj, d.mod
     rendering = depsgraph.mode == "RENDER"
     if mod is None:
         if not rendering:
             # Removed (X on the modifier) or applied (Ctrl+A): as with any modifier, the object
             # is no longer deformed by it. Its settings stay for a later Bind.
-            release(obj)
+            release(d)
         return None
     if not force and not (mod.show_render if rendering else mod.show_viewport):
         if not rendering:
             # Switched off in the viewport: the panel says so instead of an error or figures of
             # an earlier solve; switching it on solves again.
-            _pause(obj, switched_off=True)
+            _pause(d, switched_off=True)
         return None  # switched off for this evaluation, like any modifier
     if not force and not _evaluated_here(obj, depsgraph):
         # Hidden (H, Disable in Viewports, a hidden or excluded collection): Blender does not
         # evaluate it, so nothing reaches the slot. Keep the offsets shown last and solve again
         # when it is shown: it comes back as it was, with no error.
         if not rendering:
-            _pause(obj, paused="the object is hidden: VP-FFD solves again when it is shown")
+            _pause(d, paused="the object is hidden: VP-FFD solves again when it is shown")
         return None
     return mod
 
 
-def _pause(obj, **why):
+def _pause(d, **why):
     """Nothing is solved now (`why`: paused=text or switched_off=True): the panel shows no
     figures, since they would be those of another state; the next update solves again."""
-    set_status(obj, **why)
-    state = states.get(obj.session_uid)
+    set_status(d, **why)
+    state = states.get(d.key)
     if state is not None:
         state.signature = None
 
@@ -171,19 +221,22 @@ def _evaluate(state, frame):
     return result
 
 
-def check_folds(obj, depsgraph):
-    """Solve the current frame and count folds whatever the mesh size; None on error."""
-    if not update(obj, depsgraph, force=True) and status(obj).error:
+def check_folds(target, depsgraph):
+    """Solve the current frame of deformer `target` and count folds whatever the mesh size;
+    None on error."""
+    d = deformer_of(target)
+    if not update(d, depsgraph, force=True) and status(d).error:
         return None
-    state = states.get(obj.session_uid)
+    state = states.get(d.key)
     if state is None or state.result is None or state.result.binding is None:
         return None
-    info = status(obj)
+    info = status(d)
     info.folds = count_folds(state.result.binding, state.result.points, state.orientation)
     return info.folds
 
 
-def slot_output(obj):
-    """(V, 3) float32 positions the VP-FFD slot gave in the last solve (object space), or None."""
-    state = states.get(obj.session_uid)
+def slot_output(target):
+    """(V, 3) float32 positions the slot of deformer `target` gave in the last solve (object
+    space), or None."""
+    state = states.get(deformer_of(target).key)
     return None if state is None else state.output

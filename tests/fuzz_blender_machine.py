@@ -802,7 +802,7 @@ def _stale_inputs(ob):
     """The cached solve used inputs that the current settings no longer give (the known
     stale-signature bug): another interpolation, or an inverted vertex group (whose influence
     depends on whether a group is set)."""
-    state = _ops().bound.states.get(ob.session_uid)
+    state = _ops().bound.state_of(ob)
     binding = getattr(state, "binding", None)
     lat = ob.vpffd.lattice
     if binding is None or lat is None or lat.type != "LATTICE":
@@ -813,7 +813,7 @@ def _stale_inputs(ob):
 
 def _flung(ob, dg):
     """How far the last solve moved the lattice points, in lattice sizes (None if unknown)."""
-    state = _ops().bound.states.get(ob.session_uid)
+    state = _ops().bound.state_of(ob)
     points = getattr(state, "points", None)
     if points is None or ob.vpffd.lattice is None:
         return None

@@ -80,6 +80,16 @@ MUTATIONS = {
         "                if going != 1 or coming != 1:",
         "                if going != 1:",
         ["tests/test_core_compiled.py", "-k", "topology"], {}),
+    "deformers-stale-input": (
+        "operators/update.py",
+        "            depsgraph.update()\n",
+        "            pass\n",
+        ["tests/test_deformers_blender.py", "-k", "render or reordering"], {}),
+    "rebuild-drops-inputs": (
+        "operators/node_group.py",
+        "            if not is_current(ng) and ng.library is None:\n                _rebuild(ng)\n",
+        "            if not is_current(ng) and ng.library is None:\n                _build(ng)\n",
+        ["tests/test_deformers_blender.py", "-k", "file_of"], {}),
     "target-bind-from-result": (
         "operators/lifecycle.py",
         "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / ",

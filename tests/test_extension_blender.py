@@ -228,8 +228,8 @@ def test_settings_named_as_frame_inputs_reach_the_core_as_they_are(ext):
     assert {"strength", "volume_scale", "cage_depth", "cage_outside"} <= set(named), named
     s.strength, s.volume_scale, s.cage_depth, s.cage_outside = 0.7, 1.2, 2, "STAY"
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    state = ops.bound.states[ball.session_uid]
-    frame = ops.frame_read.read(ball, state, ops.modifier.find(ball), depsgraph, None)
+    state = ops.bound.state_of(ball)
+    frame = ops.frame_read.read(ops.deformers.first(ball), state, depsgraph, None)
     assert (frame.inputs.strength, frame.inputs.volume_scale, frame.inputs.cage_depth,
             frame.inputs.cage_outside) == (pytest.approx(0.7), pytest.approx(1.2), 2, "STAY")
     # Computed by frame_read.py, not read as they are: the lattice (a model, not the object),

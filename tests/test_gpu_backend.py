@@ -402,7 +402,7 @@ def test_auto_goes_back_to_the_cpu_when_the_gpu_measures_slower(gb, vpffd, monke
     bpy.context.scene.frame_set(1)
     with bpy.context.temp_override(object=ob, active_object=ob, selected_objects=[ob]):
         assert bpy.ops.object.vpffd_bind() == {"FINISHED"}
-    costs = ops.bound.states[ob.session_uid].costs
+    costs = ops.bound.state_of(ob).costs
     paths = [ops.status.stats(ob)["backend"]]
     # (Bind solves twice: its own solve, the first, on the CPU, and the update after it.)
     assert paths == ["GPU"] and any(k[0] == "CPU" for k in costs), (paths, costs)

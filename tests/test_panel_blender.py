@@ -120,8 +120,8 @@ def test_a_mirror_alone_mirrors_space_and_folds_nothing(ext):
     assert len(listed) == 1 and "mirrors space" in listed[0], listed
     assert not any("folds" in t or "inverted" in t for t, _ in _status_lines(ext, ball))
     # A real fold under the mirror is still counted: check it against the Jacobian's own sign.
-    binding = _ops(ext).bound.states[ball.session_uid].result.binding
-    det = core.jacobian_det(binding, _ops(ext).bound.states[ball.session_uid].result.points)
+    binding = _ops(ext).bound.state_of(ball).result.binding
+    det = core.jacobian_det(binding, _ops(ext).bound.state_of(ball).result.points)
     assert (det < 0).all()
 
 

@@ -316,10 +316,10 @@ def test_undo_keeps_the_binding(ext):
     ob = _object("Ball")
     assert _bind(ob, lattice=lat, axes="XYZ") == {"FINISHED"}
     bpy.context.scene.frame_set(10)
-    state = ops.bound.states[ob.session_uid]
+    state = ops.bound.state_of(ob)
     binding = state.binding
     ext.module.operators.handlers.on_undo()
-    assert ops.bound.states[ob.session_uid].binding is binding
+    assert ops.bound.state_of(ob).binding is binding
     assert ops.status.stats(ob).get("rebound") is False
 
 
@@ -341,19 +341,29 @@ def test_save_as_shape_key_holds_the_slots_result(ext):
     assert np.abs(keyed - _evaluated(_input_twin("none"))[0]).max() > 0.05
 
 
-def test_a_duplicated_vpffd_modifier_is_reported_and_nothing_is_applied_twice(ext):
+def test_a_copied_vpffd_modifier_gets_its_own_settings_and_deforms_nothing_until_bound(ext):
+    """Duplicate on a VP-FFD modifier: the copy gets settings of its own (those of the one copied,
+    not bound) and its own slot, and adds nothing; the original deforms as before (equal to a twin
+    with one VP-FFD modifier)."""
+    ops = _ops(ext)
     lat = _lattice()
-    ob = _object("Ball")
-    source = _input_twin("none")
-    assert _bind(ob, lattice=lat, axes="XYZ") == {"FINISHED"}
+    ob, twin = _object("Ball"), _object("Twin")
+    for o in (ob, twin):
+        assert _bind(o, lattice=lat, axes="XYZ", volume_scale=1.1) == {"FINISHED"}
     with bpy.context.temp_override(object=ob, active_object=ob):
         assert bpy.ops.object.modifier_copy(modifier=ob.modifiers[-1].name) == {"FINISHED"}
     bpy.context.scene.frame_set(14)
-    assert "one VP-FFD modifier per object" in _ops(ext).status.stats(ob)["error"]
-    np.testing.assert_array_equal(_evaluated(ob)[0], _evaluated(source)[0])
-    ob.modifiers.remove(ob.modifiers[-1])
+    copy = ops.modifier.find_all(ob)[-1]
+    s = ops.deformers.settings_of(ob, copy)
+    assert s is not None and s != ob.vpffd and not s.is_bound
+    assert s.lattice == lat and s.axes == "XYZ" and s.volume_scale == pytest.approx(1.1)
+    assert ops.status.stats(ob).get("error") is None
+    shown, reference = _evaluated(ob)[0], _evaluated(twin)[0]
+    np.testing.assert_allclose(shown, reference, rtol=0, atol=1e-6 * np.ptp(reference, 0).max())
+    assert np.abs(shown - _evaluated(_input_twin("none"))[0]).max() > 0.05   # it does deform
+    ob.modifiers.remove(copy)
     bpy.context.scene.frame_set(15)
-    assert _ops(ext).status.stats(ob).get("error") is None
+    assert ops.status.stats(ob).get("error") is None and len(ob.vpffd_extra) == 0
 
 
 def test_subdivision_before_and_after_the_slot_still_keeps_the_volume(ext):

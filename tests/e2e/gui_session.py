@@ -504,6 +504,8 @@ def session():
           and not sphere.vpffd.is_bound and not any(m.type == "NODES" for m in sphere.modifiers),
           (bpy.data.objects.get(fitted_name), sphere and sphere.vpffd.is_bound))
 
+    yield from two_deformers(ops)
+
     # Add > VP-FFD Demos > Bent Arm: VP-FFD after an Armature (Target: Bind, a falloff lattice
     # around the elbow) gives back the volume the arm had at Bind; the Armature alone loses it.
     op("object.vpffd_demo_bent_arm")
@@ -540,6 +542,75 @@ def session():
           view_after[0] == view_before[0] != "CAMERA"
           and np.allclose(view_after[1], view_before[1], atol=1e-5)
           and abs(view_after[2] - view_before[2]) <= 1e-5, (view_before, view_after))
+
+
+def two_deformers(ops):
+    """Two VP-FFD modifiers on one mesh, added from Add Modifier > Deform > VP-FFD Lattice with
+    a lattice selected and bound from the panel of the one shown, equal a twin with two Lattice
+    modifiers (Correction None); Ctrl+Z takes the second one back, Ctrl+Shift+Z brings it again."""
+    entries = [getattr(fn, "__module__", "") for fn in
+               getattr(bpy.types.OBJECT_MT_modifier_add_deform.draw, "_draw_funcs", [])]
+    check("Add Modifier > Deform offers VP-FFD Lattice", any(m.endswith(".operators.ops") for m in entries),
+          entries)
+    layer = bpy.context.window_manager.windows[0].view_layer
+    made = {}
+    for name, x in (("Ours", -3.0), ("Twin", -3.0)):     # one place: the same lattice space
+        op("mesh.primitive_ico_sphere_add", subdivisions=3, radius=0.7, location=(x, 0.0, 1.0))
+        made[name] = layer.objects.active.name
+    for name, z, squash in (("Head", 1.5, 0.6), ("Belly", 0.9, 1.3)):
+        op("object.add", type="LATTICE", location=(0.0, 0.0, z))
+        lat = layer.objects.active
+        lat.name = name
+        lat.scale = (9.0, 2.0, 1.0)               # around both spheres
+        pts = lat.data.points
+        for p in pts:
+            co = p.co.copy()
+            p.co_deform = (co.x * (1.0 + 0.2 * co.z), co.y, co.z * squash)
+        made[name] = lat.name
+    yield 0.3
+    ours, twin = bpy.data.objects[made["Ours"]], bpy.data.objects[made["Twin"]]
+    head, belly = bpy.data.objects[made["Head"]], bpy.data.objects[made["Belly"]]
+    for lat in (head, belly):
+        select_only(twin)
+        op("object.modifier_add", type="LATTICE")
+        twin.modifiers[-1].object = lat
+    for lat in (head, belly):
+        select_only(ours)
+        lat.select_set(True)
+        op("object.vpffd_modifier_add")
+        shown = ops.deformers.shown(ours)
+        shown.settings.axes = "NONE"
+        op("object.vpffd_bind", modifier=shown.mod.name)
+        yield 0.5
+    found = ops.deformers.bound(ours)
+    check("two VP-FFD deformers bound, each to its lattice",
+          [d.settings.lattice for d in found] == [head, belly], [d.settings.lattice for d in found])
+
+    def same():
+        a, b = evaluated(ours)[0], evaluated(twin)[0]
+        return float(np.abs(a - b).max()) if a.shape == b.shape else float("inf")
+    moved = float(np.abs(evaluated(ours)[0] - mesh_arrays(ours.data)[0]).max())
+    check("two VP-FFD lattices with Correction None equal two Lattice modifiers",
+          same() <= 1e-5 and moved > 0.05, (same(), moved))
+    check("the panel shows the active VP-FFD modifier and says which",
+          ops.deformers.label(ops.deformers.shown(ours)).endswith("(2 of 2)"),
+          ops.deformers.label(ops.deformers.shown(ours)))
+    twin_name, ours_name = twin.name, ours.name
+    op("ed.undo")
+    yield 0.8
+    ours, twin = bpy.data.objects[ours_name], bpy.data.objects[twin_name]
+    twin.modifiers[-1].show_viewport = False        # the twin with the first lattice only
+    yield 0.5
+    check("Ctrl+Z takes the second VP-FFD back; the first deforms as one Lattice modifier",
+          len(ops.deformers.bound(ours)) == 1 and same() <= 1e-5, (len(ops.deformers.bound(ours)), same()))
+    twin.modifiers[-1].show_viewport = True
+    op("ed.redo")
+    yield 0.8
+    ours, twin = bpy.data.objects[ours_name], bpy.data.objects[twin_name]
+    twin.modifiers[-1].show_viewport = True
+    yield 0.5
+    check("Ctrl+Shift+Z brings it again, equal to two Lattice modifiers",
+          len(ops.deformers.bound(ours)) == 2 and same() <= 1e-5, (len(ops.deformers.bound(ours)), same()))
 
 
 def main():

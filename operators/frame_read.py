@@ -133,12 +133,12 @@ def _frame(d, ob_eval, state, lat_ob, depsgraph, *, tap, helper, stale_weights, 
         positions=X, tris=tris, lattice=lattice, points=points, matrix=L, weights=weights,
         lattice_weights=lattice_weights, correct=correct, axes=axes, directions=directions,
         mobility=mobility, pins=pin_targets, islands=s.use_islands, dtype=np.float32,
-        use_compiled=s.backend != "NUMPY", outside=outside, falloff=s.falloff_distance,
+        outside=outside, falloff=s.falloff_distance,
         target_volumes=target_volumes)
     inputs = vp.FrameInputs(**computed, **same_named_settings(s, computed))
-    # Beside the core's inputs, what changes what is shown: where the solve runs, the fold
-    # attribute, where the faces came from (the panel says it) and Edit Mode.
-    signature = FrameKey(inputs, extra=(s.backend, s.use_fold_attribute, faces_from, editing))
+    # Beside the core's inputs, what changes what is shown: the fold attribute, where the faces
+    # came from (the panel says it) and Edit Mode.
+    signature = FrameKey(inputs, extra=(s.use_fold_attribute, faces_from, editing))
     return Frame(helper=helper, inputs=inputs, signature=signature,
                   faces_from=faces_from, lattice_matrix=M_lat, warnings=warnings,
                   stale_weights=stale_weights, editing=editing)

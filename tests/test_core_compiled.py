@@ -383,21 +383,21 @@ def test_the_compiled_topology_is_numpys(kernels):
 
 
 @pytest.mark.parametrize("correct", [False, True])
-def test_a_frame_names_the_kernels_that_solved_it_and_use_compiled_off_keeps_numpy(kernels, correct):
-    """The pipeline's own solves (no solver of the caller's; the plain deformation) run where
-    `use_compiled` says: NumPy alone when it is off (the reference path), the compiled kernels
-    when it is on; the result says which (`FrameResult.backend`)."""
+def test_a_frame_names_the_kernels_that_solved_it_and_backend_numpy_keeps_numpy(kernels, correct):
+    """The pipeline's own solves (no solver of the caller's; the plain deformation) run where the
+    Backend setting says: NumPy alone for NUMPY (the reference path), the compiled kernels for the
+    others (the GPU needs a solver of its own); the result says which (`FrameResult.backend`)."""
     lat = vp.Lattice((4, 4, 4), bounds=((-1,) * 3, (1,) * 3))
     v, t = vp.icosphere(3, 0.7)
     P = lat.rest_points * [1.0, 1.0, 0.7]
     ran = {}
-    for use_compiled in (False, True):
+    for backend in ("NUMPY", "CPU", "AUTO", "GPU"):
         inputs = vp.FrameInputs(positions=v, tris=t, lattice=lat, points=P, matrix=np.eye(4),
-                                correct=correct, axes="XYZ" if correct else "", use_compiled=use_compiled)
+                                correct=correct, axes="XYZ" if correct else "", backend=backend)
         result = vp.Pipeline().evaluate(inputs)
-        ran[use_compiled] = result.backend
+        ran[backend] = result.backend
         assert (result.solution is not None) == correct
-    assert ran == {False: "NUMPY", True: "COMPILED"}
+    assert ran == {"NUMPY": "NUMPY", "CPU": "COMPILED", "AUTO": "COMPILED", "GPU": "COMPILED"}
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

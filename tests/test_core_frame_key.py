@@ -23,7 +23,7 @@ def _inputs():
         weights=rng.random(len(v)), lattice_weights=rng.random(n), strength=0.8, correct=True,
         axes="XY", directions=np.eye(3)[:2], volume_scale=1.1, mobility=rng.random(n),
         pins=[(3, np.array([0.1, 0.2, 0.3]))], islands=True, cage_depth=2, cage_outside="STAY",
-        dtype=np.float32, use_compiled=True, outside="FALLOFF", falloff=0.4,
+        dtype=np.float32, backend="CPU", outside="FALLOFF", falloff=0.4,
         target_volumes=np.array([2.0]))
 
 

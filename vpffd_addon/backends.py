@@ -131,6 +131,18 @@ def choose(preference, binding, options=None, fresh=False):
     return NUMPY, reason
 
 
+def cpu_preference(preference):
+    """The user's `preference` for a solve that runs on the CPU whatever it says (a frame
+    pipeline without a solver of the caller's): NUMPY stays NUMPY, every other becomes CPU."""
+    return "NUMPY" if str(preference).upper() == "NUMPY" else "CPU"
+
+
+def compiled_layout(preference):
+    """Whether a binding made for `preference` is laid out with the compiled kernels (once they
+    are loaded; bit for bit NumPy's layout): all but NUMPY, the reference path."""
+    return cpu_preference(preference) != "NUMPY"
+
+
 def default_steps(binding):
     """The steps a solve uses when none are given: the CPU's choice for `binding` (the compiled
     ones once `compiled.load()` succeeded, for a lattice bound by them; else NumPy's)."""

@@ -43,9 +43,11 @@ class FrameInputs:
     volume that reaches the slot.
     cage_depth, cage_outside: for a `Cage`.
     dtype: the binding's float type.
-    use_compiled: bind with the compiled kernels once they are loaded (bit for bit NumPy's
-        binding), and solve with them where no solver is given (`backends.choose`); False binds
-        and solves with NumPy, the reference. With a solver, the correction's kernels are its.
+    backend: the Backend setting (AUTO, CPU, NUMPY, GPU). Where no solver is given, the solve runs
+        on the CPU backend that the registry chooses for it (`backends.cpu_preference`): the
+        compiled kernels once they are loaded, NumPy (the reference) for NUMPY. NUMPY also lays
+        the binding out with NumPy (`backends.compiled_layout`; either layout is bit for bit
+        the other). With a solver, the correction's kernels are its.
     outside, falloff: what a lattice does to positions outside its rest box (`outside.py`, the
         table of modes: "FOLLOW" as Blender's Lattice modifier, "FALLOFF" fading out over
         `falloff` lattice-size units, "STAY" not at all); a factor on the influence, from the
@@ -73,7 +75,7 @@ class FrameInputs:
     cage_depth: int = 3
     cage_outside: str = "FOLLOW"
     dtype: object = np.float32
-    use_compiled: bool = True
+    backend: str = "AUTO"
     outside: str = "FOLLOW"
     falloff: float = 0.5
     target_volumes: object = None
@@ -193,11 +195,12 @@ class Pipeline:
                 and np.array_equal(old[2], influence) and self.topology is not None
                 and self._same_faces(inp.tris)):
             return self.binding, False
-        topology = self._topology(inp.tris, len(verts), inp.use_compiled)
+        compiled_layout = backends.compiled_layout(inp.backend)
+        topology = self._topology(inp.tris, len(verts), compiled_layout)
         extra = dict(depth=inp.cage_depth, outside=inp.cage_outside) if cage else {}
         self.binding = None   # never keep a binding whose inputs are not all in its key
         self.binding = bind(lat, verts, topology.tris, influence=influence, dtype=inp.dtype,
-                            topology=topology, use_compiled=inp.use_compiled, **extra)
+                            topology=topology, use_compiled=compiled_layout, **extra)
         # `verts` is this pipeline's own array (`_lattice_space`, which never changes one it
         # returned): kept as it is, the next frame's unchanged positions are known by identity.
         self._binding_key = (key, verts, influence.copy())
@@ -240,9 +243,9 @@ class Pipeline:
             positions, still = _keep_still(_affine(out, back), inp.positions, influence)
             return FrameResult(positions=positions, points=P_used, outside=outside, still=still)
         binding, rebound = self._embed(inp, verts, influence)
-        # Without a solver of the caller's, and for the plain deformation, the CPU solves: with
-        # NumPy alone when use_compiled is off (the reference path), else the registry's choice.
-        cpu_steps = backends.choose("CPU" if inp.use_compiled else "NUMPY", binding)[0].steps
+        # Without a solver of the caller's, and for the plain deformation, the CPU solves: the
+        # registry's choice for the Backend setting on the CPU (NumPy alone for NUMPY).
+        cpu_steps = backends.choose(backends.cpu_preference(inp.backend), binding)[0].steps
         warnings = []
         solution = None
         reference, target_given = binding.rest_volume, False

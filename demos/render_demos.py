@@ -717,7 +717,7 @@ def main(argv=None):
         framing = [w for r in results for w in r.framing]
         if framing:
             say("WARNING: some objects are outside the camera's view: the pictures do not show them "
-                "(the camera is set up in operators/demos.py).")
+                "(the cameras are set up in operators/demo_scenes.py).")
         if args.update_readme:
             if not ok or framing:
                 say(f"{shown(args.page)} not updated: " + ("a VP-FFD object's volume check failed" if not ok else

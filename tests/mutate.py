@@ -167,8 +167,8 @@ MUTATIONS = {
         ["tests/test_panel_blender.py", "-k", "compile"], {}),
     "demo-view-kept": (
         "operators/demos.py",
-        "        _frame_views(context, user_scene if scene != user_scene else None)",
-        "        _frame_views(context)",
+        "        frame_views(context, user_scene if scene != user_scene else None)",
+        "        frame_views(context)",
         ["tests/e2e/test_gui_window.py"], {"VPFFD_NO_E2E": ""}),
     "bpy-missing": (
         None, None, None,

@@ -27,8 +27,8 @@ MUTATIONS = {
         ["-m", "core", "tests/test_core_reference.py", "tests/test_core_properties.py"], {}),
     "apply-raises": (
         "operators/lifecycle.py",
-        '    shape keys."""\n    mesh = obj.data\n',
-        '    shape keys."""\n    raise RuntimeError("mutation: Apply is broken")\n',
+        'the deformer first among the enabled modifiers, and no shape keys."""\n    d = deformer_of(target)\n',
+        'the deformer first among the enabled modifiers, and no shape keys."""\n    raise RuntimeError("mutation: Apply is broken")\n',
         ["tests/test_regressions_blender.py", "tests/test_extension_blender.py"], {}),
     "gpu-kernel-invalid": (
         "operators/gpu_backend.py",
@@ -102,8 +102,8 @@ MUTATIONS = {
         ["tests/test_outside_target_blender.py", "-k", "gives_back"], {}),
     "undo-relink-noop": (
         "operators/handlers.py",
-        "                relink_after_undo(ob, bpy.data.objects)",
-        "                pass",
+        "                    relink_after_undo(d, bpy.data.objects)",
+        "                    pass",
         ["tests/test_lifecycle_blender.py", "-k", "undo"], {}),
     "fit-margin-ignored": (
         "operators/fit.py",
@@ -152,8 +152,8 @@ MUTATIONS = {
         ["tests/test_panel_blender.py", "-k", "open_mesh"], {}),
     "apply-forgets-the-lattice": (
         "operators/lifecycle.py",
-        "    unbind(obj)\n    note_applied(obj)",
-        "    unbind(obj)",
+        "    note_applied(d)\n    unbind(d)",
+        "    unbind(d)",
         ["tests/test_panel_blender.py", "-k", "after_apply"], {}),
     "fit-poll-silent": (
         "operators/fit.py",

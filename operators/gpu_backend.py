@@ -452,7 +452,7 @@ class GPUSolver:
         if len(b.island_origin) == 1:
             self.origins = b.island_origin[0][None]
         else:
-            self.origins = b._origins(np.arange(self.V))
+            self.origins = b.origins(np.arange(self.V))
         self.disp = None
 
     def _upload(self, layout):

@@ -8,8 +8,8 @@ or, on a GPU machine without Blender (any Python with NumPy and moderngl, OpenGL
 
     python3 benchmarks/gpu_benchmark.py --standalone --out benchmarks/results/gpu_hardware.json
 
-`--standalone` runs the extension's own kernels and solve driver (operators/gpu_backend.py,
-vpffd_addon/solve.py) through benchmarks/moderngl_gpu.py, which supplies the calls of Blender's
+`--standalone` runs the extension's own kernels and solve driver (operators/gpu_backend.py and the
+modules beside it, vpffd_addon/solve.py) through benchmarks/moderngl_gpu.py, which supplies the calls of Blender's
 `gpu` module; `--readme FILE.json` then writes such a run's figures into docs/speed.md.
 
 Icospheres of subdivision 7 and 8 (163,842 / 655,362 vertices, radius 0.45) in a 10x10x10 B-spline
@@ -47,7 +47,8 @@ def log(*args):
 
 
 def load_gpu_backend():
-    """operators/gpu_backend.py as a standalone module (the operators package needs the extension)."""
+    """operators/gpu_backend.py as a standalone module (the operators package needs the extension);
+    it loads the modules beside it (`gpu_shaders`, `gpu_device`, `gpu_solver`) itself."""
     spec = importlib.util.spec_from_file_location(
         "vpffd_gpu_backend", os.path.join(_ROOT, "operators", "gpu_backend.py"))
     mod = importlib.util.module_from_spec(spec)
@@ -122,8 +123,8 @@ def kernel_breakdown(gb, solver, P, axes):
     ctx = getattr(gpu, "_standalone_context", None)
     if ctx is None:
         return None
-    names = {id(sh): name for kernels in gb._kernel_cache.values() for name, sh in kernels.items()}
-    out, real = {}, gb._dispatch
+    names = {id(sh): name for kernels in gb.gpu_device.kernel_cache.values() for name, sh in kernels.items()}
+    out, real = {}, gb.gpu_solver.dispatch          # (where the solver looks it up)
 
     def timed_dispatch(shader, n):
         ctx().finish()
@@ -135,13 +136,13 @@ def kernel_breakdown(gb, solver, P, axes):
         row[1] += 1000 * (time.perf_counter() - t)
         return groups
 
-    gb._dispatch = timed_dispatch
+    gb.gpu_solver.dispatch = timed_dispatch
     try:
         t = time.perf_counter()
         solver.solve(P, axes=axes)
         total = 1000 * (time.perf_counter() - t)
     finally:
-        gb._dispatch = real
+        gb.gpu_solver.dispatch = real
     out["other"] = [0, total - sum(ms for _, ms in out.values())]
     return out
 

@@ -1,6 +1,7 @@
-"""The part of Blender's `gpu` module that `operators/gpu_backend.py` calls, on moderngl (OpenGL 4.3
-through EGL, no window), so that the extension's own kernels and solve driver run, unchanged, on a
-machine where Blender cannot: a GPU server with no display and no room for the bpy wheel.
+"""The part of Blender's `gpu` module that the GPU path calls (`operators/gpu_device.py`), on
+moderngl (OpenGL 4.3 through EGL, no window), so that the extension's own kernels and solve driver
+run, unchanged, on a machine where Blender cannot: a GPU server with no display and no room for
+the bpy wheel.
 
 Only a benchmark uses it (`benchmarks/gpu_benchmark.py --standalone`): it times the GPU path on real
 hardware. What Blender adds around the kernels (its own GPU context, the draw loop) is not in it.

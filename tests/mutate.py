@@ -31,7 +31,7 @@ MUTATIONS = {
         'the deformer first among the enabled modifiers, and no shape keys."""\n    raise RuntimeError("mutation: Apply is broken")\n',
         ["tests/test_regressions_blender.py", "tests/test_extension_blender.py"], {}),
     "gpu-kernel-invalid": (
-        "operators/gpu_backend.py",
+        "operators/gpu_shaders.py",
         "int global_index() { return",
         "int global_index() { this is not GLSL; return",
         ["tests/test_gpu_backend.py"], {}),

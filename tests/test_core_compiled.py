@@ -254,7 +254,7 @@ def test_a_compiled_solve_makes_none_of_numpys_stored_weights(kernels):
     # cells and faces around the slots only (NumPy's weights and sorted faces would cost more than
     # the solve).
     b, P = _problem(np.float32, islands=True)
-    moved = vp.bind(b.lattice, b._source[0] + 0.01, b.topology.tris, dtype=np.float32, topology=b.topology)
+    moved = vp.bind(b.lattice, b.source[0] + 0.01, b.topology.tris, dtype=np.float32, topology=b.topology)
     for options in ({"axes": "XYZ"}, {"axes": "XY", "islands": True}, {"axes": "", "preserve_volume": False}):
         moved.solve(P, **options)
     assert not {"wuv", "ww", "corner_parts"} & set(vars(moved))
@@ -268,11 +268,11 @@ def test_pin_rows_come_from_the_cell_coordinates_and_equal_the_forward_product(k
     b, P = _problem(dtype)
     D = P - b.lattice.rest_points
     slots = b.slot[np.array([0, 7, 100, len(b.slot) - 1])]
-    rows = b._rows(slots)
+    rows = b.rows(slots)
     assert not {"wuv", "ww"} & set(vars(b))
     rel = 1e-6 if dtype == np.float32 else 1e-12
     for c in range(3):
-        want = b._forward(D[:, c])[slots]                     # (makes the stored weights now)
+        want = b.forward(D[:, c])[slots]                      # (makes the stored weights now)
         assert np.abs(rows @ D[:, c] - want).max() <= rel * np.abs(D).max()
 
 
@@ -280,7 +280,7 @@ def test_what_is_made_on_first_use_is_made_from_the_positions_as_bound(kernels):
     # The caller's arrays may change after the bind: the stored weights made later are still
     # those of the positions and weights that were bound.
     b, _ = _problem(np.float32)
-    verts, tris = b._source[0].copy(), b.topology.tris
+    verts, tris = b.source[0].copy(), b.topology.tris
     weights = np.linspace(0.2, 1.0, len(verts))
     ref = vp.bind(b.lattice, verts, tris, dtype=np.float32, influence=weights, use_compiled=False)
     out = vp.bind(b.lattice, verts, tris, dtype=np.float32, influence=weights)

@@ -189,14 +189,14 @@ def test_the_least_norm_step_does_not_depend_on_the_rows_scale(kernels, c):
 def test_the_float64_copies_are_made_once_per_binding(kernels):
     b, P, tris, part = _three_bodies(np.float32)
     b.solve(P, islands=True)
-    dtype, params, x0 = b._converted
+    dtype, params, x0 = b.converted
     assert dtype == np.float64 and params.dtype == x0.dtype == np.float64
     np.testing.assert_array_equal(x0, b.x0.astype(np.float64))
     b.solve(P * 1.01, islands=True, axes="Z")
-    assert b._converted[1] is params and b._converted[2] is x0
+    assert b.converted[1] is params and b.converted[2] is x0
     b64, *_ = _three_bodies(np.float64)
     b64.solve(P, islands=True)
-    assert "_converted" not in vars(b64)
+    assert "converted" not in vars(b64)
 
 
 def test_the_float64_copies_count_in_the_bindings_nbytes(kernels):
@@ -205,7 +205,7 @@ def test_the_float64_copies_count_in_the_bindings_nbytes(kernels):
     # slot, about half again the binding's ~100 bytes per vertex) are left out.
     b, P, tris, part = _three_bodies(np.float32)
     b.solve(P, islands=True)
-    _, params, x0 = b._converted
+    _, params, x0 = b.converted
     arrays = sum(a.nbytes for a in vars(b).values() if isinstance(a, np.ndarray))
     assert b.nbytes >= arrays + params.nbytes + x0.nbytes
 

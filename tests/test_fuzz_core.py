@@ -299,7 +299,7 @@ def _beyond_float32(b, P):
     spacing = ((lat.hi - lat.lo) / np.maximum(n - 1, 1))[n > 1]
     D = np.abs(np.asarray(P, float) - lat.rest_points)
     return bool(D.max(initial=0) > 1e37 or (len(spacing) and spacing.min() < 1e-36)
-                or np.ptp(b._to_verts(b.x0), 0).max() > 1e37)
+                or np.ptp(b.to_verts(b.x0), 0).max() > 1e37)
 
 
 def _all_finite(*values):
@@ -651,7 +651,7 @@ def _check_solution(b, tris, P, sol, islands):
     # ... up to rounding of the largest number involved (the displacements included: huge ones
     # that cancel leave their rounding behind).
     mag = max(1.0, float(np.abs(sol.verts).max()), float(np.abs(sol.points).max()),
-              float(np.abs(P).max()), float(np.abs(b._to_verts(b.x0)).max()),
+              float(np.abs(P).max()), float(np.abs(b.to_verts(b.x0)).max()),
               float(np.abs(P - b.lattice.rest_points).max()),
               float(np.abs(sol.points - b.lattice.rest_points).max()))
     rel = 1e-5 if b.dtype == np.float32 else 1e-9
@@ -686,7 +686,7 @@ def _check_solution(b, tris, P, sol, islands):
     # first order: delta x area; beyond it (delta comparable to the mesh): the triple products'
     # perturbation bound per face
     d, L = np.float64(delta), np.float64(L)      # NumPy floats: inf instead of OverflowError
-    size = np.float64(np.ptp(b._to_verts(b.x0), 0).max())   # the rest mesh: volumes below
+    size = np.float64(np.ptp(b.to_verts(b.x0), 0).max())    # the rest mesh: volumes below
     with np.errstate(over="ignore"):                          # eps x size^3 are noise
         allowance = eps * (flux + rest_mag + size ** 3) + d * area * 3 \
             + len(tris) * (d * L * L + d * d * L + d ** 3)
@@ -695,7 +695,7 @@ def _check_solution(b, tris, P, sol, islands):
         COUNTS["volume"]["warned: below rounding"] += 1   # the solver said it cannot be kept
         return
     if abs(measured - sol.volume) > allowance:
-        rest = b._to_verts(b.x0)
+        rest = b.to_verts(b.x0)
         size = float(np.ptp(rest, 0).max())
         far = float(np.abs(0.5 * (rest.min(0) + rest.max(0)) - b.lattice.centre).max())
         if not b.is_closed and b.dtype == np.float32 and size > 0 and far > 10 * size:

@@ -25,19 +25,26 @@ class BindingBase:
     `Cage`, kept as `lattice`), its vertices stored in "slots" (a reordering, possibly padded),
     coordinates relative to per-island volume origins, faces as slot triples.
 
-    Subclasses provide the products with S B: `_forward`, `_transpose`, `_island_transpose`,
-    `_rows`, and `jacobian_det`.
+    Subclasses provide the products with S B: `forward`, `transpose`, `island_transpose`,
+    `rows`, and `jacobian_det`. What the solve's steps (`steps`, `compiled`, the GPU path) ask of
+    every binding besides: `forward_many`, `gather`, `gradient`, `gradient_of`, `displacements`,
+    `origins`, `to_verts`.
 
     Public attributes: `lattice`, `dtype`, `n_verts`, `n_faces`, `is_closed`, `rest_volume`,
     `n_islands`, `island_labels` (V,), `rest_island_volumes` (n_islands,), `influence` (V,),
     `n_outside` (vertices outside the lattice's box or the cage's region), `nbytes`.
+
+    Set on a lattice binding by the compiled steps on first use (absent until then; `compiled`):
+    `incidence` (start (n_slots + 1,) int64, pairs (6 F,) int32), the faces around every slot;
+    `vertex_rows` (V,) int64, the row of `island_origin` of every vertex; `converted` (dtype,
+    params (4, n_slots), x0 (3, n_slots)), the binding's values in another precision.
     """
 
     def deform(self, points):
         """Standard FFD (Blender's Lattice modifier) for control points `points` (N, 3): (V, 3) float64."""
-        D = self._displacements(points)
-        X = self.x0 + np.stack([self._forward(D[:, c]) for c in range(3)])
-        verts = self._to_verts(X)
+        D = self.displacements(points)
+        X = self.x0 + np.stack([self.forward(D[:, c]) for c in range(3)])
+        verts = self.to_verts(X)
         if not np.isfinite(verts).all():
             raise ValueError(f"the deformation overflows {self.dtype.name}: the control points are too far away")
         return verts
@@ -64,8 +71,8 @@ class BindingBase:
     def nbytes(self):
         """Bytes held by the arrays of this binding."""
         arrays = [a for a in vars(self).values() if isinstance(a, np.ndarray)] + vars(self).get("corner_parts", [])
-        arrays += [a for a in vars(self).get("_incidence", ()) if isinstance(a, np.ndarray)]
-        arrays += list(vars(self).get("_converted", ())[1:])     # float64 copies (islands' steps)
+        arrays += [a for a in vars(self).get("incidence", ()) if isinstance(a, np.ndarray)]
+        arrays += list(vars(self).get("converted", ())[1:])     # float64 copies (islands' steps)
         return int(sum(a.nbytes for a in arrays))
 
     #: What the NumPy products need beyond the compiled ones, made on first use (a binding laid out
@@ -85,13 +92,15 @@ class BindingBase:
         if name == "corner_parts":
             self.corner_parts = corner_parts(self)
 
-    def _gather(self, x):
-        """Coordinates x (n_slots,) at the face corners, one (3, F_part) array per face part."""
+    def gather(self, x):
+        """Slot values x (n_slots,) at the face corners: a list with one (3, F_part) array per
+        face part (`corner_parts`), in x's dtype."""
         return parallel.run(lambda c: np.take(x, c), self.corner_parts)
 
-    def _gradient_of(self, xp, xq):
-        """`_gradient` straight from slot coordinates xp, xq (n_slots,): gathers and gradient in one
-        pass per face part (one hand-over to the worker threads instead of three)."""
+    def gradient_of(self, xp, xq):
+        """`gradient` straight from slot coordinates xp, xq (n_slots,): gathers and gradient in one
+        pass per face part (one hand-over to the worker threads instead of three). (n_slots,)
+        float64."""
         n = self.x0.shape[1]
 
         def part(c):
@@ -99,21 +108,23 @@ class BindingBase:
         parts = parallel.run(part, self.corner_parts)
         return parts[0] if len(parts) == 1 else np.sum(parts, 0)
 
-    def _forward_many(self, D):
-        """`_forward` of several fields D (k, N) at once: (k, n_slots)."""
-        return np.stack([self._forward(d) for d in D])
+    def forward_many(self, D):
+        """`forward` of several fields D (k, N) on the control points at once: (k, n_slots) in the
+        binding's dtype."""
+        return np.stack([self.forward(d) for d in D])
 
-    def _gradient(self, P, Q):
-        """Volume gradient along e at every slot from gathered corner coordinates P, Q (`_gather` of
-        the coordinates on the frame vectors completing e; see `volume.gradient_component`):
-        (n_slots,) float64."""
+    def gradient(self, P, Q):
+        """Volume gradient along e at every slot from gathered corner coordinates P, Q (`gather` of
+        the (n_slots,) coordinates on the frame vectors completing e: one (3, F_part) array per
+        face part; see `volume.gradient_component`): (n_slots,) float64."""
         n = self.x0.shape[1]
         parts = parallel.run(lambda k: gradient_component(P[k], Q[k], self.corner_parts[k], n),
                              list(range(len(P))))
         return parts[0] if len(parts) == 1 else np.sum(parts, 0)
 
-    def _displacements(self, points):
-        """Validated control points (N, 3) minus the rest grid: (N, 3) float64."""
+    def displacements(self, points):
+        """Control points `points` (N, 3), validated (shape and finiteness: ValueError), minus the
+        rest grid: (N, 3) float64."""
         P = np.asarray(points, dtype=np.float64)
         N = self.lattice.n_points
         if P.shape != (N, 3):
@@ -124,15 +135,16 @@ class BindingBase:
                              f"(first: index {int(np.argmax(bad))})")
         return P - self.lattice.rest_points
 
-    def _origins(self, vertices):
-        """(k, 3) volume origins of the given vertices (their islands' origins)."""
+    def origins(self, vertices):
+        """Volume origins of the vertices `vertices` (k,) int (their islands' origins): (k, 3)
+        float64, a read-only broadcast view when the binding has one origin."""
         if len(self.island_origin) == 1:
             return np.broadcast_to(self.island_origin[0], (len(vertices), 3))
         return self.island_origin[self.slot_island[self.slot[vertices]]]
 
-    def _to_verts(self, X):
-        """Slot-ordered coordinates (3, n_slots), relative to the island origins -> (V, 3) float64
-        in lattice space."""
+    def to_verts(self, X):
+        """Slot-ordered coordinates X (3, n_slots), relative to the island origins -> (V, 3)
+        float64 in lattice space (the vertices' own order)."""
         out = np.empty((self.n_verts, 3))
         single = len(self.island_origin) == 1
 
@@ -140,13 +152,16 @@ class BindingBase:
             idx = self.slot[vs]
             for c in range(3):
                 out[vs, c] = np.take(X[c], idx)
-            out[vs] += self.island_origin[0] if single else self._origins(np.arange(vs.start, vs.stop))
+            out[vs] += self.island_origin[0] if single else self.origins(np.arange(vs.start, vs.stop))
         parallel.run(part, self.vertex_parts)
         return out
 
 
 class Binding(BindingBase):
-    """A mesh bound to a `Lattice`; made by `bind`. Coordinates are in lattice space."""
+    """A mesh bound to a `Lattice`; made by `bind`. Coordinates are in lattice space.
+
+    Extra public attribute: `source`, (positions (V, 3) float64, influence (V,) float64) as bound
+    (what NumPy's stored weights `wuv`, `ww` are made from on first use)."""
 
     _LAZY = BindingBase._LAZY + ("wuv", "ww")
 
@@ -159,7 +174,7 @@ class Binding(BindingBase):
 
     def _materialise(self, name):
         if name in ("wuv", "ww"):
-            verts, s = self._source
+            verts, s = self.source
             _numpy_weights(self, _lattice_taps(self.lattice, verts, None), s, len(self.block_run))
         else:
             super()._materialise(name)
@@ -175,9 +190,10 @@ class Binding(BindingBase):
 
     # -- products with the factored B (all in slot order; slots = padded, block-sorted vertices) --
 
-    def _forward(self, d, wuv=None, ww=None):
-        """(S B d) at every slot for a scalar field d (N,) on the control points: (n_slots,).
-        `wuv`, `ww` replace the stored weight factors (same layout), e.g. by their derivatives."""
+    def forward(self, d, wuv=None, ww=None):
+        """(S B d) at every slot for a scalar field d (N,) on the control points: (n_slots,) in the
+        binding's dtype. `wuv` (n_blocks, Kv * Ku, block), `ww` (n_blocks, Kw, block) replace the
+        stored weight factors (same layout, `block_layout`), e.g. by their derivatives."""
         wuv = self.wuv if wuv is None else wuv
         ww = self.ww if ww is None else ww
         # Contract the (v x u) weights first: the intermediate is then Kw values per vertex.
@@ -190,8 +206,9 @@ class Binding(BindingBase):
         parallel.run(part, self.block_parts)
         return out.reshape(-1)
 
-    def _forward_many(self, D):
-        """`_forward` of several fields D (k, N) at once, in one pass over the blocks: (k, n_slots)."""
+    def forward_many(self, D):
+        """`forward` of several fields D (k, N) on the control points at once, in one pass over the
+        blocks: (k, n_slots) in the binding's dtype."""
         D = np.asarray(D, dtype=self.dtype)
         out = np.empty((len(D), self.ww.shape[0], self.block_size), self.dtype)
 
@@ -202,8 +219,9 @@ class Binding(BindingBase):
         parallel.run(part, self.block_parts)
         return out.reshape(len(D), -1)
 
-    def _block_layout(self, per_vertex):
-        """(V, K) per-vertex factors -> the (n_blocks, K, block) layout of `wuv` and `ww`."""
+    def block_layout(self, per_vertex):
+        """Per-vertex factors (V, K) -> the (n_blocks, K, block) layout of `wuv` and `ww`, in the
+        binding's dtype (padding slots zero)."""
         out = np.zeros((self.x0.shape[1], per_vertex.shape[1]), self.dtype)
         out[self.slot] = per_vertex
         return np.ascontiguousarray(out.reshape(-1, self.block_size, out.shape[1]).transpose(0, 2, 1))
@@ -219,12 +237,12 @@ class Binding(BindingBase):
         parallel.run(part, self.block_parts)
         return np.add.reduceat(out, self.run_first_block, axis=0)
 
-    def _transpose(self, g):
+    def transpose(self, g):
         """(S B)^T g for g (n_slots,): (N,) float64."""
         return np.bincount(self.run_idx.ravel(), self._run_transpose(g).ravel(), self.lattice.n_points)
 
-    def _rows(self, slots):
-        """Rows of S B for the given vertex slots (k,): dense (k, N) float64. From the slots' cell
+    def rows(self, slots):
+        """Rows of S B for the given vertex slots (k,) int: dense (k, N) float64. From the slots' cell
         coordinates where the binding has them (a compiled bind then needs no stored weights for
         the pins of a frame), else from the stored weights."""
         slots = np.asarray(slots, dtype=np.int64)
@@ -246,8 +264,9 @@ class Binding(BindingBase):
         keys = (np.arange(k)[:, None] * N + idx.reshape(k, -1)).ravel()
         return np.bincount(keys, w.reshape(k, -1).ravel().astype(np.float64), k * N).reshape(k, N)
 
-    def _island_transpose(self, g, k):
-        """(k, N) rows (S B)^T g restricted to each island's slots (islands 0..k-1)."""
+    def island_transpose(self, g, k):
+        """(S B)^T g for g (n_slots,) restricted to each island's slots (islands 0..k-1): (k, N)
+        float64, one row per island."""
         N = self.lattice.n_points
         keys = (self.run_island[:, None, None] * N + self.run_idx).ravel()
         return np.bincount(keys, self._run_transpose(g).ravel(), k * N).reshape(-1, N)
@@ -302,7 +321,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     local = all(len(tap) > 2 for tap in taps)
     # For what is made on first use (`_LAZY`): the positions and weights as bound, copied where
     # they are the caller's own arrays (which the caller may change after the bind).
-    b._source = tuple(a.copy() if given is not None and np.may_share_memory(a, given) else a
+    b.source = tuple(a.copy() if given is not None and np.may_share_memory(a, given) else a
                       for a, given in ((verts, rest_verts), (s, influence)))
     if kernels:
         faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels)

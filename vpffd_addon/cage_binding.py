@@ -40,7 +40,9 @@ class CageBinding(BindingBase):
             return self.dense.T @ np.asarray(z, self.dense.dtype)
         return self.refinement.apply_transpose(self.elements.ext.rmatvec(z))
 
-    def _forward(self, d):
+    def forward(self, d):
+        """(S B d) at every slot for a scalar field d (N,) on the cage points: (n_slots,) in the
+        binding's dtype."""
         y = self._extended(np.asarray(d, np.float64)).astype(self.dtype)
         # Vertices of one run share their 8 refined points: gather once per run, then repeat.
         Y = np.repeat(y[self.run_corners], self.run_len, axis=0)
@@ -50,16 +52,21 @@ class CageBinding(BindingBase):
         """(n_runs, 8) per-run sums of the weights times g (n_slots,)."""
         return np.add.reduceat(self.tw * np.asarray(g, self.dtype)[:, None], self.run_start, axis=0)
 
-    def _transpose(self, g):
+    def transpose(self, g):
+        """(S B)^T g for g (n_slots,): (N,) float, in the binding's dtype where the refinement is one
+        dense matrix (`dense`), else float64."""
         z = np.bincount(self.run_corners.ravel(), self._run_sums(g).ravel(), self.n_ext)
         return self._extended_transpose(z)
 
-    def _island_transpose(self, g, k):
+    def island_transpose(self, g, k):
+        """(S B)^T g for g (n_slots,) restricted to each island's slots (islands 0..k-1): (k, N)
+        float, one row per island (dtype as `transpose`)."""
         keys = (self.run_island[:, None] * self.n_ext + self.run_corners).ravel()
         z = np.bincount(keys, self._run_sums(g).ravel(), k * self.n_ext)
         return self._extended_transpose(z.reshape(k, self.n_ext).T).T
 
-    def _rows(self, slots):
+    def rows(self, slots):
+        """Rows of S B for the given vertex slots (k,) int: dense (k, N) float64."""
         slots = np.asarray(slots, np.int64)
         out = np.zeros((len(slots), self.lattice.n_points))
         for s in range(0, len(slots), _ROW_CHUNK):
@@ -73,7 +80,7 @@ class CageBinding(BindingBase):
         """det(d x' / d x) at every vertex for cage points `points` (N, 3): (V,) float64. The map
         is trilinear or affine inside each refined element; outside the region it is a
         translation (determinant 1)."""
-        D = self._displacements(points)
+        D = self.displacements(points)
         X = self._extended(self.lattice.rest_points)
         Y = X + self._extended(D)
         idx = self.tidx

@@ -299,10 +299,11 @@ class CompiledSteps(Steps):
         if dtype == b.dtype:
             self.params, self.x0 = b.params, b.x0
         else:   # the binding's values, computed with in another precision (`in_float64`),
-            # made once per binding (a lattice animating under a still mesh keeps its binding)
-            got = getattr(b, "_converted", None)
+            # made once per binding (a lattice animating under a still mesh keeps its binding) and
+            # kept as `b.converted`
+            got = getattr(b, "converted", None)
             if got is None or got[0] != dtype:
-                got = b._converted = (dtype, b.params.astype(dtype), b.x0.astype(dtype))
+                got = b.converted = (dtype, b.params.astype(dtype), b.x0.astype(dtype))
             self.params, self.x0 = got[1], got[2]
         self.X = self.x0.copy()
         lat = b.lattice
@@ -422,9 +423,10 @@ def _along(e, X):
 
 def incidence(binding):
     """The faces around every slot of `binding` (`solve_kernels`): (start (n_slots + 1,) int64,
-    pairs (2 * 3F,) int32), made once per binding from its topology's faces around every vertex
-    (made once per topology: a mesh re-embedded on every frame only renumbers them)."""
-    got = getattr(binding, "_incidence", None)
+    pairs (2 * 3F,) int32), made once per binding (kept as `binding.incidence`) from its topology's
+    faces around every vertex (made once per topology: a mesh re-embedded on every frame only
+    renumbers them)."""
+    got = getattr(binding, "incidence", None)
     if got is None:
         K, topo, slot = _state["kernels"], binding.topology, binding.slot
         around = getattr(topo, "_vertex_incidence", None)
@@ -438,19 +440,20 @@ def incidence(binding):
         K["slot_incidence_start"](slot, around[0], start)
         parallel.run(lambda p: K["slot_incidence_fill"](slot, around[0], around[1], start, pairs, p.start, p.stop),
                      binding.vertex_parts)
-        got = binding._incidence = (start, pairs)
+        got = binding.incidence = (start, pairs)
     return got
 
 
 def vertex_rows(binding):
-    """(V,) the row of `binding.island_origin` that each vertex's coordinates are relative to."""
-    got = getattr(binding, "_vertex_rows", None)
+    """(V,) int64: the row of `binding.island_origin` that each vertex's coordinates are relative
+    to, made once per binding (kept as `binding.vertex_rows`)."""
+    got = getattr(binding, "vertex_rows", None)
     if got is None:
         if len(binding.island_origin) == 1:
             got = np.zeros(binding.n_verts, np.int64)
         else:
             got = np.ascontiguousarray(binding.island_labels, dtype=np.int64)
-        binding._vertex_rows = got
+        binding.vertex_rows = got
     return got
 
 

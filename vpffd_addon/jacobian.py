@@ -21,8 +21,8 @@ def lattice_jacobian_det(binding, points):
     """
     b = binding
     lat = b.lattice
-    D = b._displacements(points)
-    rest = b._to_verts(b.x0)
+    D = b.displacements(points)
+    rest = b.to_verts(b.x0)
     taps = [axis_taps(rest[:, a], lat.shape[a], lat.lo[a], lat.hi[a], lat.interpolation[a], derivative=True)
             for a in range(3)]
     (_, wu, du), (_, wv, dv), (_, ww, dw) = taps
@@ -32,13 +32,13 @@ def lattice_jacobian_det(binding, points):
     def outer(a, c):  # (V, Ka) x (V, Kc) -> (V, Ka * Kc), a slowest
         return (a[:, :, None] * c[:, None, :]).reshape(V, -1)
 
-    factors = [(b._block_layout(outer(wv, du)), None),             # d/du: (v x du), w
-               (b._block_layout(outer(dv, wu)), None),             # d/dv: (dv x u), w
-               (None, b._block_layout(dw * s))]                    # d/dw: (v x u), dw
+    factors = [(b.block_layout(outer(wv, du)), None),              # d/du: (v x du), w
+               (b.block_layout(outer(dv, wu)), None),              # d/dv: (dv x u), w
+               (None, b.block_layout(dw * s))]                     # d/dw: (v x u), dw
     J = np.empty((V, 3, 3))
     for col, (wuv, wwd) in enumerate(factors):
         for comp in range(3):
-            slots = b._forward(D[:, comp], wuv=wuv, ww=wwd)
+            slots = b.forward(D[:, comp], wuv=wuv, ww=wwd)
             J[:, comp, col] = slots[b.slot]
     J[:, [0, 1, 2], [0, 1, 2]] += 1.0
     det = det3(J)

@@ -93,7 +93,7 @@ def _check_pins(pins, binding):
     if free.any():
         raise ValueError(f"pin on vertex {int(index[free][0])}, which the lattice does not influence "
                          "(its influence is 0)")
-    return binding.slot[index], target - binding._origins(index), index
+    return binding.slot[index], target - binding.origins(index), index
 
 
 def _frame(e):
@@ -126,7 +126,7 @@ class _State:
         self.k = (steps or default_steps)(b)        # the per-slot work (NumPy, compiled, or GPU)
         self.mob = mobility
         self.pin_slots, self.pin_targets, self.pin_index = pins
-        self.pin_rows = b._rows(self.pin_slots) if len(self.pin_slots) else None
+        self.pin_rows = b.rows(self.pin_slots) if len(self.pin_slots) else None
         self.islands = islands
         self.targets = targets                      # (k,) volume targets (k = 1 or islands)
         self.slot_island = b.slot_island if islands else None
@@ -442,7 +442,7 @@ def _min_norm_step(C, r, mobility=None, rcond=tol.JACOBIAN_RCOND):
 
 def _volumes(b, verts, islands):
     """(k,) float64 volumes of `verts` (V, 3), per island or in total, about the binding's origins."""
-    rel = verts - b._origins(np.arange(b.n_verts))
+    rel = verts - b.origins(np.arange(b.n_verts))
     face = face_volumes(np.ascontiguousarray(rel.T), b.topology.tris_t)
     if islands:
         return np.bincount(b.topology.face_island, face, b.n_islands)
@@ -473,7 +473,7 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
     """
     t0 = time.perf_counter()
     b = binding
-    b._displacements(points)  # validates shape and finiteness
+    b.displacements(points)  # validates shape and finiteness
     dirs = parse_directions(axes, directions)
     scale = float(volume_scale)
     if not np.isfinite(scale) or scale < 0:

@@ -64,15 +64,15 @@ class NumpySteps(Steps):
         self.X = binding.x0.copy()
 
     def _forward(self, components, D):
-        for c, field in zip(components, self.b._forward_many(D[:, components].T)):
+        for c, field in zip(components, self.b.forward_many(D[:, components].T)):
             self.X[c] = self.b.x0[c] + field
 
     def _gradient(self, a1, a2):
-        return self.b._gradient_of(self.X[a1], self.X[a2])
+        return self.b.gradient_of(self.X[a1], self.X[a2])
 
     def direction_gradient(self, p, q, D):
         self.refresh((0, 1, 2), D)
-        return self.b._gradient(self.b._gather(p @ self.X), self.b._gather(q @ self.X))
+        return self.b.gradient(self.b.gather(p @ self.X), self.b.gather(q @ self.X))
 
     @staticmethod
     def _split(values, rows, k):
@@ -94,15 +94,15 @@ class NumpySteps(Steps):
 
     def transpose(self, g, rows, k=1):
         if rows is None:
-            return self.b._transpose(g)[None]
-        return self.b._island_transpose(g, k)
+            return self.b.transpose(g)[None]
+        return self.b.island_transpose(g, k)
 
     def add_along(self, e, t):
-        self.X += (e[:, None] * self.b._forward(t)).astype(self.X.dtype)
+        self.X += (e[:, None] * self.b.forward(t)).astype(self.X.dtype)
 
     def verts(self, D):
         self.refresh((0, 1, 2), D)
-        return self.b._to_verts(self.X)
+        return self.b.to_verts(self.X)
 
     def finite(self):
         return bool(np.isfinite(self.X).all())

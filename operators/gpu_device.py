@@ -81,8 +81,8 @@ def kernels(bs, kw, kuv):
             for typ, cname in consts:
                 info.push_constant(typ, cname)
             info.local_group_size(GROUP, 1, 1)
-            for key, value in defines.items():
-                info.define(key, str(value))
+            for define, value in defines.items():    # not `key`: that names the cache entry
+                info.define(define, str(value))
             if name in SHARED:
                 info.typedef_source(SHARED[name])
             info.compute_source(HEADER + body)

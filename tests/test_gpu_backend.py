@@ -282,6 +282,24 @@ def test_errors_match_cpu(gb):
         s.solve(P)
 
 
+def test_compiled_kernels_are_compiled_once_per_block_layout(gb, monkeypatch):
+    """A second solve with the same block size and tap counts reuses the kernels compiled for the
+    first (compiling six compute shaders costs far more than a solve); `available()`, which the
+    choice of backend calls, compiles none either once they are there."""
+    lat, v, f, influence, P = _case("box-cardinal-weights")
+    b = vp.bind(lat, v, f, influence=influence, dtype=np.float32)
+    gb.GPUSolver(b).solve(P, axes="XYZ")
+    cache = gb.gpu_device.kernel_cache
+    assert cache and all(isinstance(k, tuple) and len(k) == 3 for k in cache), list(cache)
+    made = []
+    create = gb.gpu_device.gpu_module().shader.create_from_info
+    monkeypatch.setattr(gb.gpu_device.gpu_module().shader, "create_from_info",
+                        lambda info: made.append(info) or create(info))
+    gb.GPUSolver(b).solve(P, axes="XYZ")
+    assert gb.available()[0]
+    assert made == []
+
+
 def test_release_drops_compiled_kernels(gb):
     gb.release()
     assert not gb.gpu_device.kernel_cache

@@ -160,14 +160,12 @@ def copy_settings(source, target):
 
 
 def drop(d):
-    """Forget the settings of a deformer whose modifier is gone: an entry of `obj.vpffd_extra`
-    is removed; `obj.vpffd` stays (its settings wait for a later Bind)."""
-    if d.is_first:
-        return
-    for k, entry in enumerate(extras(d.obj)):
-        if entry == d.settings:
-            d.obj.vpffd_extra.remove(k)
-            return
+    """Let go of the settings of a deformer whose modifier is gone: `obj.vpffd` stays as it is
+    (its settings wait for a later Bind); an entry of `obj.vpffd_extra` names no modifier any
+    more but stays in place: keyframes and drivers address the entries by their index
+    (`vpffd_extra[2].volume_scale`), so removing one would hand the next one's animation on."""
+    if not d.is_first and d.settings.modifier_uid:
+        d.settings.modifier_uid = 0
 
 
 def evaluated_settings(d, ob_eval):

@@ -279,9 +279,13 @@ def _build(ng):
     # Split as Blender's own triangles of a mesh (quads on their first and third corners, n-gons
     # by ear clipping): the volume of non-planar faces depends on the split, and VP-FFD measures
     # every other input on those triangles.
+    # Only the input's mesh: the taps of VP-FFD modifiers earlier in the stack come with it, and
+    # Mesh to Points and Instance on Points would carry them along into this tap.
+    mesh_only = N.new("GeometryNodeSeparateComponents")
+    link(gin.outputs[0], mesh_only.inputs[0])
     faces = N.new("GeometryNodeTriangulate")
     _set_triangulation(faces)
-    link(gin.outputs[0], faces.inputs["Mesh"])
+    link(mesh_only.outputs["Mesh"], faces.inputs["Mesh"])
     geometry = faces.outputs[0]
     for k, name in enumerate(CORNER_ATTRIBUTES):
         corner = N.new("GeometryNodeCornersOfFace")
@@ -309,7 +313,7 @@ def _build(ng):
                        (pick_exists, -250, -450), (points, 50, -300),
                        (mark, 250, -300), (faces, -450, -700), (face_points, 450, -700),
                        (face_mark, 650, -700), (only_if, 850, -500), (join, 1050, 0), (gout, 1250, 0),
-                       (earlier, -650, 150), (untapped, -400, 150)):
+                       (earlier, -650, 150), (untapped, -400, 150), (mesh_only, -650, -700)):
         node.location = (x, y)
     ng[GROUP_TAG] = GROUP_VERSION
     ng[_KIND] = kind
@@ -371,6 +375,11 @@ def get_input(mod, name):
     return None if key is None else node_inputs.get(mod, key)
 
 
+#: session_uids of the objects whose VP-FFD inputs `set_input` changed since the update last asked
+#: (update.update_object: a later deformer must not read a tap the change made stale)
+retagged = set()
+
+
 def set_input(mod, name, value):
     """Set the modifier's input `name` when it differs (writing tags the object for evaluation)."""
     key = _identifier(mod, name)
@@ -383,5 +392,13 @@ def set_input(mod, name, value):
         changed = current != value
     if changed:
         node_inputs.put(mod, key, value)
-        mod.id_data.update_tag()   # a raw input value tags nothing by itself
+        retagged.add(mod.id_data.session_uid)
+        # A raw input value tags nothing by itself. An object input changes the depsgraph's
+        # relations (a plain tag rebuilds them); any other only the object's data, and a plain
+        # tag there would also re-evaluate its base flags, which Blender 4.2 to 5.1 can crash on
+        # when a frame handler then evaluates again (several VP-FFD modifiers: update.py).
+        if isinstance(value, (bpy.types.ID, type(None))):
+            mod.id_data.update_tag()
+        else:
+            mod.id_data.update_tag(refresh={"DATA"})
     return changed

@@ -59,11 +59,10 @@ def _update(d, depsgraph, force, helpers_taken=None):
 
 def update_object(obj, depsgraph, force=False, helpers_taken=None):
     """Update every bound deformer of `obj`, in stack order. New offsets of one change what
-    reaches the VP-FFD modifiers after it, so the object is evaluated again before those read
-    their input: a frame's result never waits for a later handler call (a render calls the frame
+    reaches the VP-FFD modifiers after it (and a changed input, e.g. Tap Faces, leaves the object
+    to be evaluated), so the object is evaluated again before those read their input: a frame's result never waits for a later handler call (a render calls the frame
     handler once). Returns True when a solve ran."""
-    if depsgraph.mode != "RENDER" and (len(obj.modifiers) > 1 or len(obj.vpffd_extra)) \
-            and _adopt_copies(obj):
+    if depsgraph.mode != "RENDER" and len(obj.modifiers) > 1 and _adopt_copies(obj):
         return False        # the copy's tap is its own from the next evaluation on
     solved = False
     found = deformers.bound(obj)
@@ -71,7 +70,10 @@ def update_object(obj, depsgraph, force=False, helpers_taken=None):
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             solved |= _update(d, depsgraph, force, helpers_taken)
         state = states.get(d.key)
-        if state is not None and state.wrote and any(later.mod is not None for later in found[k + 1:]):
+        inputs_changed = obj.session_uid in node_group.retagged
+        node_group.retagged.discard(obj.session_uid)
+        if (inputs_changed or (state is not None and state.wrote)) \
+                and any(later.mod is not None for later in found[k + 1:]):
             depsgraph.update()
     return solved
 
@@ -86,16 +88,11 @@ def _adopt_copies(obj):
     """Give a VP-FFD modifier that no settings name (a copy of another, made in the stack with
     Duplicate or Copy to Selected) settings of its own, copied from the deformer it was copied
     from but not bound, its own slot and no offsets (it would add those of the helper it shares):
-    it deforms nothing until it is bound, and its panel offers Bind. The settings of such a copy
-    go when it is removed unbound. Returns True when a modifier changed (the object then waits for its next evaluation)."""
+    it deforms nothing until it is bound, and its panel offers Bind. Returns True when a
+    modifier changed (the object then waits for its next evaluation)."""
     if obj.library is not None:
         return False
     mods = deformers.modifier.find_all(obj)
-    uids = {m.persistent_uid for m in mods}
-    for k in reversed(range(len(deformers.extras(obj)))):
-        entry = obj.vpffd_extra[k]
-        if not entry.is_bound and entry.modifier_uid not in uids:
-            obj.vpffd_extra.remove(k)   # the settings of a removed, unbound copy
     changed = False
     for m in mods:
         if deformers.settings_of(obj, m, mods) is None:
@@ -114,7 +111,7 @@ def _adopt_copies(obj):
 def request_update(obj):
     """Settings changed: have the next depsgraph update recompute this object."""
     if getattr(obj, "type", None) == "MESH" and deformers.is_bound(obj):
-        obj.update_tag()
+        obj.update_tag(refresh={"DATA"})    # not a plain tag: see node_group.set_input
 
 
 # ---------------------------------------------------------------------------------------- bind

@@ -363,7 +363,8 @@ def test_a_copied_vpffd_modifier_gets_its_own_settings_and_deforms_nothing_until
     assert np.abs(shown - _evaluated(_input_twin("none"))[0]).max() > 0.05   # it does deform
     ob.modifiers.remove(copy)
     bpy.context.scene.frame_set(15)
-    assert ops.status.stats(ob).get("error") is None and len(ob.vpffd_extra) == 0
+    assert ops.status.stats(ob).get("error") is None
+    assert [d.settings for d in ops.deformers.all_of(ob)] == [ob.vpffd]
 
 
 def test_subdivision_before_and_after_the_slot_still_keeps_the_volume(ext):

@@ -9,7 +9,7 @@ which allowed one VP-FFD modifier) belong to the first VP-FFD modifier that no o
 name. Nothing here writes, except `claim` and `drop`."""
 import dataclasses
 
-from . import modifier
+from . import modifier, node_group
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -59,6 +59,13 @@ def settings_of(obj, mod, mods=None):
         if entry.modifier_uid == uid:
             return entry
     mods = modifier.find_all(obj) if mods is None else mods
+    # Blender gives a modifier a new uid in some cases (those a library override inserted, on
+    # load): its Slot input still holds the uid its settings were synced with.
+    slot = node_group.get_input(mod, node_group.SLOT_INPUT)
+    if slot and slot != uid and not any(m.persistent_uid == slot for m in mods):
+        for s in (obj.vpffd, *extras(obj)):
+            if s.modifier_uid == slot:
+                return s
     if _first_is_free(obj, mods):
         named = {e.modifier_uid for e in extras(obj)}
         unnamed = [m for m in mods if m.persistent_uid not in named]

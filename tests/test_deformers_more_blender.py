@@ -851,13 +851,6 @@ def test_a_mesh_whose_vertex_groups_hold_no_vertex_deforms_as_blenders_lattice_m
 
 # -------------------------------------------------------------- a linked character's override
 
-@pytest.mark.xfail(strict=True, reason=(
-    "BUG: saved and reopened, a library override loses its second deformer: the item of "
-    "obj.vpffd_extra comes back with default values (unbound, no lattice: the override keeps the "
-    "insertion, not the item's settings), and the modifiers inserted in the override get new "
-    "persistent_uids on load (only obj.vpffd is re-paired, by the 'first unnamed' rule); "
-    "update._adopt_copies then takes the second VP-FFD modifier for an unbound copy and clears its "
-    "Solver input: it deforms nothing"))
 def test_a_library_override_with_two_deformers_deforms_and_survives_save_and_open(ext, tmp_path):
     """A rigged character linked from another file with a library override (its mesh stays
     linked): a rigger binds two VP-FFD deformers on it. Correction None equals an Armature and two

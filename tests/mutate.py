@@ -90,6 +90,11 @@ MUTATIONS = {
         "            if not is_current(ng) and ng.library is None:\n                _rebuild(ng)\n",
         "            if not is_current(ng) and ng.library is None:\n                _build(ng)\n",
         ["tests/test_deformers_blender.py", "-k", "file_of"], {}),
+    "override-uids-renewed": (
+        "operators/deformers.py",
+        "    if slot and slot != uid and not any(m.persistent_uid == slot for m in mods):",
+        "    if False:",
+        ["tests/test_deformers_more_blender.py", "-k", "override"], {}),
     "target-bind-from-result": (
         "operators/lifecycle.py",
         "helper[BIND_VOLUME_PROPERTY] = (b.rest_island_volumes / ",

@@ -34,10 +34,6 @@ class Deformer:
         """Whether its settings are `obj.vpffd` (the deformer scripts of earlier versions meant)."""
         return self.settings == self.obj.vpffd
 
-    @property
-    def name(self):
-        return self.mod.name if self.mod is not None else "VP-FFD"
-
 
 def extras(obj):
     return getattr(obj, "vpffd_extra", ())

@@ -129,6 +129,33 @@ def _with_off(mods, measure):
             m.show_viewport = True
 
 
+def render_frame(frame, tmp_path, capture, camera=None):
+    """An F12 animation render of scene frame `frame` alone (Workbench, 32 x 32, through `camera`,
+    or a new one looking at the origin from -Y); returns [what `capture()` returned when the frame
+    was written]."""
+    scene = bpy.context.scene
+    if camera is None:
+        camera = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
+        scene.collection.objects.link(camera)
+    camera.location, camera.rotation_euler = (0, -6, 0), (1.5708, 0, 0)
+    scene.camera = camera
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x = scene.render.resolution_y = 32
+    scene.render.filepath = str(tmp_path / "frame_")
+    scene.frame_start = scene.frame_end = frame
+    written = []
+
+    def snapshot(*_args):
+        written.append(capture())
+
+    bpy.app.handlers.render_write.append(snapshot)
+    try:
+        bpy.ops.render.render(animation=True)
+    finally:
+        bpy.app.handlers.render_write.remove(snapshot)
+    return written
+
+
 # ------------------------------------------------------------------------------------- tests
 
 @pytest.mark.parametrize("rig", [False, True], ids=["bare", "rig_and_subdivision"])
@@ -313,24 +340,7 @@ def test_an_animation_render_solves_the_second_deformer_on_the_frame_rendered(ex
     helpers = [ops.node_group.get_input(m, ops.node_group.SOLVER_INPUT) for m in ops.modifier.find_all(ob)]
     expected = [ops.solver_helper.read_offsets(h).copy() for h in helpers]
     scene.frame_set(2)                  # the viewport now shows another frame
-    cam = bpy.data.objects.new("Cam", bpy.data.cameras.new("Cam"))
-    scene.collection.objects.link(cam)
-    cam.location, cam.rotation_euler = (0, -6, 0), (1.5708, 0, 0)
-    scene.camera = cam
-    scene.render.engine = "BLENDER_WORKBENCH"
-    scene.render.resolution_x = scene.render.resolution_y = 32
-    scene.render.filepath = str(tmp_path / "frame_")
-    scene.frame_start = scene.frame_end = 16
-    written = []
-
-    def snapshot(*_args):
-        written.append([ops.solver_helper.read_offsets(h).copy() for h in helpers])
-
-    bpy.app.handlers.render_write.append(snapshot)
-    try:
-        bpy.ops.render.render(animation=True)
-    finally:
-        bpy.app.handlers.render_write.remove(snapshot)
+    written = render_frame(16, tmp_path, lambda: [ops.solver_helper.read_offsets(h).copy() for h in helpers])
     assert written, "the render wrote its frame"
     size = 1.6 * 1.4
     for got, want in zip(written[0], expected):

@@ -19,7 +19,7 @@ from . import extension_harness as eh  # noqa: E402
 from .blender_ref import (bind as _bind, bone_weights_by_height, evaluated_volume,  # noqa: E402
                           triangle_mesh, two_bone_armature)
 from .test_deformers_blender import (_add_and_bind, _capsule, _lattice_twin, _lattices,  # noqa: E402
-                                     _same_shape, _two_deformers, _user, _with_off)
+                                     _same_shape, _two_deformers, _user, _with_off, render_frame)
 
 pytestmark = pytest.mark.blender
 
@@ -991,22 +991,7 @@ def test_a_render_with_the_first_switched_off_for_renders(ext, tmp_path):
     expected = _local(only) - rest.reshape(-1, 3)
     scene.frame_set(2)
     helper = ops.node_group.get_input(m2, ops.node_group.SOLVER_INPUT)
-    cam.location, cam.rotation_euler = (0, -6, 0), (1.5708, 0, 0)
-    scene.camera = cam
-    scene.render.engine = "BLENDER_WORKBENCH"
-    scene.render.resolution_x = scene.render.resolution_y = 32
-    scene.render.filepath = str(tmp_path / "frame_")
-    scene.frame_start = scene.frame_end = 16
-    written = []
-
-    def snapshot(*_args):
-        written.append(ops.solver_helper.read_offsets(helper).copy())
-
-    bpy.app.handlers.render_write.append(snapshot)
-    try:
-        bpy.ops.render.render(animation=True)
-    finally:
-        bpy.app.handlers.render_write.remove(snapshot)
+    written = render_frame(16, tmp_path, lambda: ops.solver_helper.read_offsets(helper).copy(), cam)
     assert written, "the render wrote its frame"
     assert written[0].shape == expected.shape
     assert np.abs(written[0] - expected).max() <= 2e-6 * 2.3

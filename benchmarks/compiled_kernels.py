@@ -81,15 +81,18 @@ def main(argv=None):
     ref = vp.solve.solve(b, P, axes="XYZ", steps=NumpySteps)
     out = vp.solve.solve(b, P, axes="XYZ", steps=compiled.CompiledSteps)
     n_slots = b.x0.shape[1]
-    start, pairs = compiled.incidence(b)
+    start, entries, ring = compiled.incidence(b)
     report = {"vertices": b.n_verts, "slots": n_slots, "lattice": list(b.lattice.shape), "threads": len(b.block_parts),
               "load_seconds": round(load_s, 2),
               "max_vertex_difference_rel": float(np.abs(out.verts - ref.verts).max() / b.lattice.size),
               "volume_rel_error_compiled": abs(out.volume / out.target_volume - 1),
               # What the compiled passes stream per slot (float32): params 16 B, x0 and X 4 B each per
-              # component, the faces around a slot (8 B a pair, about 6 pairs) and the gathered
+              # component, the faces around a slot (4 B a neighbour where they close a fan, 8 B a
+              # face elsewhere, with where they start and whether a ring) and the gathered
               # coordinates; the NumPy steps read 80 B of stored weights per slot per product.
-              "compiled_bytes_per_slot": {"forward": 16 + 8, "axis_pass": round(16 + 4 + 8 + (pairs.nbytes + start.nbytes) / n_slots + 8, 1)},
+              "compiled_bytes_per_slot": {"forward": 16 + 8, "axis_pass": round(
+                  16 + 4 + 8 + (entries.nbytes + start.nbytes + ring.nbytes) / n_slots + 8, 1)},
+              "ring_slots": int(ring.sum()),
               "numpy_bytes_per_slot": {"forward": 80 + 8, "transpose": 80 + 8}}
     report.update({k: round(float(np.median(v)), 2) for k, v in times.items()})
     print(json.dumps(report, indent=1))

@@ -44,7 +44,7 @@ def run(subdivisions=7, rounds=7, max_threads=None):
             b.solve(P, axes="XYZ")                                  # warm: faces around slots made
 
             def reembed():
-                moved_b = vp.bind(lat, moved, f, dtype=np.float32, topology=topology)
+                moved_b = vp.bind(lat, moved, topology.tris, dtype=np.float32, topology=topology)
                 if compiled.ready():
                     compiled.incidence(moved_b)                     # what its first solve needs
             reembed()

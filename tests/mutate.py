@@ -47,9 +47,24 @@ MUTATIONS = {
         ["tests/test_core_compiled.py", "tests/test_compiled_blender.py"], {}),
     "compiled-transpose-axis": (
         "vpffd_addon/solve_kernels.py",
-        "                h[s] = ww[k, s] * wv[j, s] * gs[s]",
-        "                h[s] = ww[k, s] * wv[k, s] * gs[s]",
+        "                    t += c[1, j, q] * A[(r * 4 + q) * 4 + i]",
+        "                    t += c[0, j, q] * A[(r * 4 + q) * 4 + i]",
         ["tests/test_core_compiled.py"], {}),
+    "compiled-forward-axis": (
+        "vpffd_addon/solve_kernels.py",
+        "                    t += A[(k * 4 + j) * 4 + p] * c[1, j, q]",
+        "                    t += A[(k * 4 + j) * 4 + p] * c[0, j, q]",
+        ["tests/test_core_compiled.py"], {}),
+    "compiled-ring-unclosed": (
+        "vpffd_addon/solve_kernels.py",
+        "        acc += pm * q0 - qm * p0\n",
+        "        acc += 0.0\n",
+        ["tests/test_core_compiled.py"], {}),
+    "rings-reuse-faces": (
+        "vpffd_addon/solve_kernels.py",
+        "                    if pairs_v[2 * e] == nxt and not used[e - s0]:",
+        "                    if pairs_v[2 * e] == nxt:",
+        ["tests/test_core_compiled.py", "-k", "rings_and_pairs"], {}),
     "compiled-bind-influence": (
         "vpffd_addon/layout_kernels.py",
         "            params[3, sl] = s[v]",
@@ -75,6 +90,11 @@ MUTATIONS = {
         "                rel[v, a] = verts[v, a] - origin[r, a]",
         "                rel[v, a] = verts[v, a] - origin[0, a]",
         ["tests/test_core_compiled.py", "-k", "re_embedding"], {}),
+    "reembed-parts-unordered": (
+        "vpffd_addon/layout_kernels.py",
+        "        for k in range(counts.shape[1]):\n            start[k] = pos\n            for p in range(counts.shape[0]):",
+        "        for k in range(counts.shape[1]):\n            start[k] = pos\n            for p in range(counts.shape[0] - 1, -1, -1):",
+        ["tests/test_core_compiled.py", "-k", "any_number_of_threads"], {}),
     "topology-open-as-closed": (
         "vpffd_addon/layout_kernels.py",
         "                if going != 1 or coming != 1:",

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("numba", reason="numba is not installed in this environment")
 
 import vpffd_addon as vp  # noqa: E402
-from vpffd_addon import backends, compiled  # noqa: E402
+from vpffd_addon import backends, compiled, parallel  # noqa: E402
 from vpffd_addon.steps import NumpySteps  # noqa: E402
 
 from . import _meshes as M  # noqa: E402
@@ -209,6 +209,29 @@ def test_a_compiled_re_embedding_is_numpys_bit_for_bit(kernels, dtype):
             vp.bind(lat, moved, tris, dtype=np.float32, topology=topology)
 
 
+@pytest.mark.parametrize("threads", [1, 3, 5])
+def test_a_re_embedding_on_any_number_of_threads_is_numpys_bit_for_bit(kernels, threads):
+    # Every pass of a compiled re-embedding is split over the worker threads (the positions and
+    # their bounds, the cells, the counting sort, the slots, what they hold, the faces' terms);
+    # what the parts give is combined so that the binding is NumPy's on any number of threads.
+    # Three islands, one partly outside the lattice, big enough for five parts.
+    v, f = vp.icosphere(6, 0.5)
+    v2, f2 = vp.icosphere(5, 0.2)
+    verts = np.vstack([v, v2 + [0.35, 0.1, 0.0], v2 * 1.5 - [0.3, 0.2, 0.6]])
+    tris = np.vstack([f, f2 + len(v), f2 + len(v) + len(v2)])
+    lat = vp.Lattice((5, 6, 4), ("CATMULL_ROM", "LINEAR", "BSPLINE"))
+    topology = vp.Topology(tris, len(verts))
+    moved = (verts * 1.05 + [0.02, -0.01, 0.03]).astype(np.float32)
+    previous = parallel.set_workers(threads)
+    try:
+        ref, out = _bind_both(lat, moved, topology.tris, dtype=np.float32, topology=topology)
+    finally:
+        parallel.set_workers(previous)
+    assert len(out.vertex_parts) == threads and out.n_islands == 3 and out.n_outside > 0
+    for name, a in _arrays(ref).items():
+        np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
+
+
 def test_bezier_and_one_point_axes_bind_with_numpy(kernels):
     assert compiled.bind_kernels(vp.Lattice((4, 4, 4), "BEZIER")) is None
     assert compiled.bind_kernels(vp.Lattice((4, 1, 4))) is None
@@ -380,6 +403,42 @@ def test_the_compiled_topology_is_numpys(kernels):
         for name in ("labels", "face_island", "island_order", "island_start", "tris_t"):
             np.testing.assert_array_equal(getattr(out, name), getattr(ref, name), err_msg=name)
     assert [vp.Topology(t, nv).is_closed for t, nv in cases] == [True, False, False, False, True, True, True]
+
+
+@pytest.mark.parametrize("case", ["closed", "open", "doubled", "degenerate", "shared vertex", "shuffled"])
+def test_the_compiled_gradient_around_rings_and_pairs_is_numpys(kernels, case):
+    # The gradient passes sum around a ring of neighbours where a vertex's faces close one fan and
+    # face by face elsewhere (`solve_kernels.vertex_rings`): open fans, a face doubled, a
+    # degenerate face, two bodies sharing a vertex, the faces in any order; every axis and the
+    # three at once against NumPy's face-wise gradient, in float64.
+    rng = np.random.default_rng(5)
+    v, f = vp.icosphere(3, 0.5)
+    v2, f2 = vp.icosphere(1, 0.2)
+    verts = np.vstack([v, v2 + 0.25, v2 - 0.25, [[0.1, 0.1, 0.1]]])
+    base = np.vstack([f, f2 + len(v), f2 + len(v) + len(v2)])
+    tris = {"closed": base, "open": base[7:], "doubled": np.vstack([base, base[:1]]),
+            "degenerate": np.vstack([base, [[3, 3, 9]]]),
+            "shared vertex": np.vstack([f, np.where(f2 == 0, 0, f2 + len(v))]),
+            "shuffled": base[rng.permutation(len(base))]}[case]
+    if case == "shared vertex":
+        verts = np.vstack([v, v2 + v[0] * 1.4])
+    lat = vp.Lattice((4, 5, 4), ("BSPLINE", "CARDINAL", "LINEAR"), bounds=((-0.8,) * 3, (0.8,) * 3))
+    b = vp.bind(lat, verts, tris)
+    rings = compiled.incidence(b)[2]
+    assert 0 < int(rings.sum()) <= b.n_verts
+    if case not in ("closed", "shuffled"):
+        assert int(rings.sum()) < len(np.unique(tris))      # (some fans are summed face by face)
+    D = lat.rest_points * [1.0, 1.1, 0.8] + rng.normal(0, 0.03, lat.rest_points.shape) - lat.rest_points
+    ref, fast = NumpySteps(b), kernels.CompiledSteps(b)
+    ref.refresh((0, 1, 2), D)
+    fast.refresh((0, 1, 2), D)
+    fast.X[:] = ref.X
+    tol = 1e-14 * 6 * np.abs(ref.X).max() ** 2
+    three = fast.axis_gradients(D)
+    for axis in range(3):
+        want = ref.axis_gradient(axis, D)
+        assert np.abs(fast.axis_gradient(axis, D).g - want).max() <= tol
+        assert np.abs(three[axis].g - want).max() <= tol
 
 
 @pytest.mark.parametrize("correct", [False, True])

@@ -8,7 +8,7 @@ vertex, to hold memory near 100 bytes per vertex in float32.
 """
 import numpy as np
 
-from . import compiled, parallel
+from . import compiled, layout, parallel
 from .bases import _local_weights, axis_cells, axis_taps, tap_count
 from .jacobian import lattice_jacobian_det
 from .lattice import Lattice
@@ -294,10 +294,9 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     n_keys = n_cells * b.n_islands
     if kernels and n_keys <= max(4 * V, 1 << 16):
         # A counting sort over the keys (the same order), which also gives the runs.
-        start, order = np.zeros(n_keys + 1, np.int64), np.empty(V, np.int64)
-        islands = np.ascontiguousarray(labels, np.int64) if b.n_islands > 1 else np.zeros(0, np.int64)
-        kernels["counting_order"](taps[0][2], taps[1][2], taps[2][2], islands, np.array(dims, np.int64),
-                                  start, order)
+        islands = np.ascontiguousarray(labels, np.int64) if b.n_islands > 1 else _NO_LABELS
+        start, order = layout.counting_order(kernels, taps[0][2], taps[1][2], taps[2][2], islands,
+                                             np.array(dims, np.int64), n_keys)
         run_len = np.diff(start)
         run_start = start[:-1][run_len > 0]
         run_len = run_len[run_len > 0]
@@ -364,21 +363,20 @@ def _lattice_taps(lattice, verts, kernels, threads=True):
     axis, also its unclamped cell (V,) and t (V,) (`bases.axis_cells`). With `kernels` (every
     axis is then local) only the cells and t, by the compiled kernel. On the worker threads for a
     big mesh unless `threads` is False (when called from one of them)."""
-    cols = np.ascontiguousarray(verts.T)
     V = len(verts)
+    if kernels:
+        # The compiled solve computes the weights itself: only the cells and t (`first` and the
+        # weights are None; a run's first tap is clip(cell, 0, n - 1) - 1), every axis of a part
+        # of the vertices on each worker thread.
+        return [(None, None) + cell_t for cell_t in layout.axis_cells(kernels, np.ascontiguousarray(verts), lattice)]
+    cols = np.ascontiguousarray(verts.T)
 
     def taps_of(a):
         n, lo, hi, kind = lattice.shape[a], lattice.lo[a], lattice.hi[a], lattice.interpolation[a]
-        if not kernels:
-            first, w = axis_taps(cols[a], n, lo, hi, kind)
-            if n == 1 or kind == "BEZIER":
-                return first, w
-            return (first, w) + axis_cells(cols[a], n, lo, hi)
-        # The compiled solve computes the weights itself: only the cells and t (`first` and the
-        # weights are None; a run's first tap is clip(cell, 0, n - 1) - 1).
-        cell, t = np.empty(V, np.int64), np.empty(V)
-        kernels["axis_cells"](cols[a], n, float(lo), float(hi), cell, t)
-        return None, None, cell, t
+        first, w = axis_taps(cols[a], n, lo, hi, kind)
+        if n == 1 or kind == "BEZIER":
+            return first, w
+        return (first, w) + axis_cells(cols[a], n, lo, hi)
     # The three axes are independent and NumPy and the kernels release the GIL: big meshes use
     # the worker threads.
     if threads and V >= parallel.MIN_VERTS_PER_PART:
@@ -425,23 +423,17 @@ def _numpy_weights(b, taps, s, n_blocks):
 
 def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
     """The slots, what every slot holds (the compiled solve's `params`, the influence and x0) and
-    the faces' volumes (`face_volume_sums`), by the compiled kernels, the last two side by side;
+    the faces' volumes (`face_volume_sums`), by the compiled kernels on the worker threads;
     NumPy's stored weights are left to be made if something asks for them
     (`Binding._materialise`). Returns (face_vol, sums) as `slot_faces`."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
     b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
-    kernels["slots"](*runs, bs, b.slot, sorted_slot)
+    layout.slots(kernels, runs, bs, b.slot, sorted_slot)
     b.slot_influence, b.params, b.x0 = np.zeros(n_slots, dt), np.zeros((4, n_slots), dt), np.zeros((3, n_slots), dt)
-    shape = np.array(lattice.shape, np.int64)
-    rel = np.ascontiguousarray(rel)
-
-    def values():
-        b.n_outside = kernels["sorted_values"](runs[0], sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi,
-                                               1e-6 * lattice.size, b.params, b.slot_influence, b.x0)
-    jobs = [lambda: face_volume_sums(b, rel, kernels), values]
-    if b.n_verts >= parallel.MIN_VERTS_PER_PART:
-        return parallel.run(lambda job: job(), jobs)[0]
-    return [job() for job in jobs][0]
+    face_vol = np.empty(b.topology.tris_t.shape[1])
+    b.n_outside = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot,
+                                               np.ascontiguousarray(rel), face_vol)
+    return face_vol, _volume_sums(b, face_vol)
 
 
 def stable_order(keys):
@@ -501,8 +493,7 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None, kerne
     if measured is None:
         rel = verts - (b.island_origin[0] if single else b.island_origin[labels])
     else:
-        rel = np.empty_like(verts)
-        kernels["relative"](verts, b.island_origin, _NO_LABELS if single else measured[3], rel)
+        rel = layout.relative(kernels, verts, b.island_origin, _NO_LABELS if single else measured[3])
     return verts, tris, s, labels, rel
 
 
@@ -522,8 +513,8 @@ def _measured_positions(rest_verts, topology, kernels):
     v = np.ascontiguousarray(v)
     k = topology.n_islands
     labels = np.ascontiguousarray(topology.labels, dtype=np.int64) if k > 1 else _NO_LABELS
-    out, lo, hi = np.empty((len(v), 3)), np.empty((k, 3)), np.empty((k, 3))
-    if kernels["positions"](v, labels, out, lo, hi):
+    out, lo, hi, bad = layout.positions(kernels, v, labels, k)
+    if bad:
         check_verts(v, "rest_verts")     # raises, naming the vertices
     return out, lo, hi, labels
 
@@ -539,28 +530,29 @@ def slot_faces(b, rel, n_slots):
     return face_volume_sums(b, rel)
 
 
-def face_volume_sums(b, rel, kernels=None):
+def face_volume_sums(b, rel):
     """(face_vol (F,), sums (2, n_islands)): the faces' float64 volume terms in their own order
     from the coordinates relative to the volume origins `rel` (V, 3), and per island their sum and
     the sum of their absolute values (summed in the faces' own order, whatever laid the slots
-    out). By the compiled kernel when `kernels` are given (bit for bit the same)."""
+    out), in NumPy (the compiled bind: `layout.slot_values_and_faces`, bit for bit the same)."""
     tris_t = b.topology.tris_t
     face_vol = np.empty(tris_t.shape[1])
-    face_parts = parallel.split(tris_t.shape[1], b.n_verts)
-    if kernels:
-        rel = np.ascontiguousarray(rel)
-        parallel.run(lambda fs: kernels["face_volumes"](rel, tris_t, face_vol, fs.start, fs.stop), face_parts)
-    else:
-        cols = np.ascontiguousarray(rel.T)
+    cols = np.ascontiguousarray(rel.T)
 
-        def volumes(fs):
-            face_vol[fs] = face_volumes(cols, tris_t[:, fs])
-        parallel.run(volumes, face_parts)
+    def volumes(fs):
+        face_vol[fs] = face_volumes(cols, tris_t[:, fs])
+    parallel.run(volumes, parallel.split(tris_t.shape[1], b.n_verts))
+    return face_vol, _volume_sums(b, face_vol)
+
+
+def _volume_sums(b, face_vol):
+    """(2, n_islands): per island the sum of the faces' volume terms face_vol (F,) and of their
+    absolute values, in the faces' own order."""
     if b.n_islands == 1:            # (a weighted bincount costs ten sums)
-        return face_vol, np.array([[face_vol.sum()], [np.abs(face_vol).sum()]])
+        return np.array([[face_vol.sum()], [np.abs(face_vol).sum()]])
     island = b.topology.face_island
-    return face_vol, np.stack([np.bincount(island, face_vol, b.n_islands),
-                               np.bincount(island, np.abs(face_vol), b.n_islands)])
+    return np.stack([np.bincount(island, face_vol, b.n_islands),
+                     np.bincount(island, np.abs(face_vol), b.n_islands)])
 
 
 def corner_parts(b):

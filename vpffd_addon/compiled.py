@@ -112,7 +112,7 @@ def _smoke(kernels):
     x = np.array([-0.9, -0.5, -0.31, 0.0, 0.2, 0.5, 0.77, 1.6])
     for n in (2, 3, 5):
         cell, t = np.empty(len(x), np.int64), np.empty(len(x))
-        kernels["axis_cells"](x, n, -0.5, 0.5, cell, t)
+        kernels["axis_cells"](np.stack([x, -x, x], 1), 2, n, -0.5, 0.5, cell, t, 0, len(x))
         if not all(np.array_equal(a, b) for a, b in zip((cell, t), axis_cells(x, n, -0.5, 0.5))):
             raise RuntimeError(f"the cells of a {n}-point axis differ from NumPy's")
     # A bind's other kernels, with the argument types a bind gives them (each signature compiles
@@ -121,7 +121,7 @@ def _smoke(kernels):
     runs = np.flatnonzero(np.r_[True, cell[order][1:] != cell[order][:-1]])
     lengths = np.diff(np.r_[runs, len(x)])
     slot, sorted_slot = np.empty(len(x), np.int64), np.empty(len(x), np.int64)
-    kernels["slots"](order, runs, lengths, np.arange(len(runs)), 8, slot, sorted_slot)
+    kernels["slots"](order, runs, lengths, np.arange(len(runs)), 8, slot, sorted_slot, 0, len(runs))
     if not np.array_equal(slot[order] // 8, np.repeat(np.arange(len(runs)), lengths)):
         raise RuntimeError("the slots of the runs are not in their blocks")
     coords = np.array([[0.0, 1.0, 0.0, 0.3], [0.0, 0.0, 1.0, 0.2], [0.0, 0.0, 0.0, 1.1]])
@@ -145,15 +145,25 @@ def _smoke(kernels):
         if bool(kernels["closed"](start, pairs)) != is_closed(tris, n) or count != ref_count \
                 or not np.array_equal(labels, ref_labels):
             raise RuntimeError("the compiled closedness or islands differ from NumPy's")
-    cu = cell
+    # The cells twice over, sorted in two parts (as on two worker threads): every key of the first
+    # part is in the second too, and the parts' places must follow each other within a key.
+    cu = np.r_[cell, cell]
     cv, cw = cu[::-1].copy(), np.zeros_like(cu)
     dims = np.array([11, 11, 4], np.int64)          # (cells of a 5-point axis are in [-3, 7])
-    for labels in (np.zeros(0, np.int64), (np.arange(len(x)) % 3).astype(np.int64)):
+    V = len(cu)
+    for labels in (np.zeros(0, np.int64), (np.arange(V) % 3).astype(np.int64)):
         k = 1 if len(labels) == 0 else 3
-        start, got = np.zeros(k * 484 + 1, np.int64), np.empty(len(x), np.int64)
-        kernels["counting_order"](cu, cv, cw, labels, dims, start, got)
-        key = ((cw + 3) * 11 + cv + 3) * 11 + cu + 3 + (labels * 484 if k > 1 else 0)
-        if not (np.array_equal(got, np.argsort(key, kind="stable")) and start[-1] == len(x)):
+        key, counts = np.empty(V, np.int64), np.zeros((2, k * 484), np.int64)
+        for j, (v0, v1) in enumerate(((0, len(x)), (len(x), V))):
+            kernels["cell_keys"](cu, cv, cw, labels, dims, key, counts[j], v0, v1)
+        start, place = np.empty(k * 484 + 1, np.int64), np.empty((2, k * 484), np.int64)
+        kernels["key_starts"](counts, start, place)
+        got = np.empty(V, np.int64)
+        for j, (v0, v1) in enumerate(((0, len(x)), (len(x), V))):
+            kernels["place_keys"](key, place[j], got, v0, v1)
+        want = ((cw + 3) * 11 + cv + 3) * 11 + cu + 3 + (labels * 484 if k > 1 else 0)
+        if not (np.array_equal(got, np.argsort(want, kind="stable")) and start[-1] == V
+                and np.array_equal(key, want)):
             raise RuntimeError("the counting sort's order differs from NumPy's stable argsort")
     xyz = np.stack([x, -x, 2 * x], 1)
     for labels in (np.zeros(0, np.int64), (np.arange(len(x)) % 2).astype(np.int64)):
@@ -161,8 +171,8 @@ def _smoke(kernels):
         rows = np.zeros(len(x), np.int64) if k == 1 else labels
         for given in (xyz, xyz.astype(np.float32)):
             out, lo, hi, rel = np.empty((len(x), 3)), np.empty((k, 3)), np.empty((k, 3)), np.empty((len(x), 3))
-            bad = kernels["positions"](given, labels, out, lo, hi)
-            kernels["relative"](out, 0.5 * (lo + hi), labels, rel)
+            bad = kernels["positions"](given, labels, out, lo, hi, 0, len(x))
+            kernels["relative"](out, 0.5 * (lo + hi), labels, rel, 0, len(x))
             want = given.astype(np.float64)
             if not (bad == 0 and np.array_equal(out, want)
                     and np.array_equal(lo, np.array([want[rows == r].min(0) for r in range(k)]))
@@ -173,7 +183,7 @@ def _smoke(kernels):
         params, influence, x0 = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype), np.zeros((3, n_slots), dtype)
         xyz = np.stack([x, x, x], 1)
         outside = kernels["sorted_values"](order, sorted_slot, xyz, xyz, np.ones(len(x)), np.array([5, 5, 5], np.int64),
-                                           np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0)
+                                           np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0, 0, len(x))
         if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))
                 and outside == 3):                  # (-0.9, 0.77 and 1.6)
             raise RuntimeError("the per-slot values are not at their slots")
@@ -205,32 +215,39 @@ def _smoke_solve(kernels, dtype):
     tol = 1e-5 if dtype == np.float32 else 1e-12
     if not np.allclose(X, x0 + D.astype(float) @ SB.T, rtol=0, atol=tol * 10):
         raise RuntimeError("the compiled forward product differs from NumPy's")
-    start_v, pairs_v = np.zeros(5, np.int64), np.empty(24, np.int32)
-    kernels["vertex_incidence"](tris_t, start_v, pairs_v)
-    slot = np.arange(4)
-    start, pairs = np.zeros(5, np.int64), np.empty(24, np.int32)
-    kernels["slot_incidence_start"](slot, start_v, start)
-    kernels["slot_incidence_fill"](slot, start_v, pairs_v, start, pairs, 0, 4)
-    for xp, xq in ((X[1], X[2]), (X[1].astype(float), X[2].astype(float))):
-        g, T, sums = np.empty(4), np.empty((1, 64)), np.empty((2, 1))
-        kernels["gradient_transpose"](xp, xq, start, pairs, params, coef, x0[0], g, T, sums, 0, 1)
-        ref = gradient_component(xp[tris_t], xq[tris_t], tris_t, 4)
-        alpha = np.zeros((1, 64))
-        kernels["reduce_blocks"](T, cell, np.zeros(1, np.int64), shape, alpha)
-        if not (np.allclose(g, ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
-                and np.isclose(sums[0, 0], x0[0].astype(float) @ ref, rtol=0, atol=tol)
-                and np.isclose(sums[1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
-            raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
-    g, T, sums = np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))
-    kernels["gradient_transpose3"](X, start, pairs, params, coef, x0, g, T, sums, 0, 1)
-    for a in range(3):
-        ref = gradient_component(X[(a + 1) % 3][tris_t], X[(a + 2) % 3][tris_t], tris_t, 4)
-        alpha = np.zeros((1, 64))
-        kernels["reduce_blocks"](T[a], cell, np.zeros(1, np.int64), shape, alpha)
-        if not (np.allclose(g[a], ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
-                and np.isclose(sums[a, 0, 0], x0[a].astype(float) @ ref, rtol=0, atol=tol)
-                and np.isclose(sums[a, 1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
-            raise RuntimeError("the compiled three-axis gradient pass differs from NumPy's sums")
+    # The gradient passes on the closed tetrahedron (every vertex's faces one closed fan: rings)
+    # and on it without its last face (three open fans: pairs, and one ring).
+    for faces, n_rings in ((tris_t, 4), (np.ascontiguousarray(tris_t[:, :3]), 1)):
+        start_v, pairs_v = np.zeros(5, np.int64), np.empty(6 * faces.shape[1], np.int32)
+        kernels["vertex_incidence"](faces, start_v, pairs_v)
+        rstart, entries_v, ring_v = np.empty(5, np.int64), np.empty_like(pairs_v), np.empty(4, np.int8)
+        kernels["vertex_rings"](start_v, pairs_v, rstart, entries_v, ring_v)
+        slot = np.arange(4)
+        start, entries, ring = np.zeros(5, np.int64), np.empty(rstart[-1], np.int32), np.zeros(4, np.int8)
+        kernels["slot_incidence_start"](slot, rstart, start)
+        kernels["slot_incidence_fill"](slot, rstart, entries_v[:rstart[-1]], ring_v, start, entries, ring, 0, 4)
+        if int(ring.sum()) != n_rings:
+            raise RuntimeError("the faces around the vertices were not made rings where they close")
+        for xp, xq in ((X[1], X[2]), (X[1].astype(float), X[2].astype(float))):
+            g, T, sums = np.empty(4), np.empty((1, 64)), np.empty((2, 1))
+            kernels["gradient_transpose"](xp, xq, start, entries, ring, params, coef, x0[0], g, T, sums, 0, 1)
+            ref = gradient_component(xp[faces], xq[faces], faces, 4)
+            alpha = np.zeros((1, 64))
+            kernels["reduce_blocks"](T, cell, np.zeros(1, np.int64), shape, alpha)
+            if not (np.allclose(g, ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
+                    and np.isclose(sums[0, 0], x0[0].astype(float) @ ref, rtol=0, atol=tol)
+                    and np.isclose(sums[1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
+                raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
+        g, T, sums = np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))
+        kernels["gradient_transpose3"](X, start, entries, ring, params, coef, x0, g, T, sums, 0, 1)
+        for a in range(3):
+            ref = gradient_component(X[(a + 1) % 3][faces], X[(a + 2) % 3][faces], faces, 4)
+            alpha = np.zeros((1, 64))
+            kernels["reduce_blocks"](T[a], cell, np.zeros(1, np.int64), shape, alpha)
+            if not (np.allclose(g[a], ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
+                    and np.isclose(sums[a, 0, 0], x0[a].astype(float) @ ref, rtol=0, atol=tol)
+                    and np.isclose(sums[a, 1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
+                raise RuntimeError("the compiled three-axis gradient pass differs from NumPy's sums")
     A = np.vstack([np.cos(np.arange(12.0)), np.sin(np.arange(12.0)), np.arange(12.0) % 5]).reshape(3, 12)
     M, tau, u = A.copy(), np.empty(3), np.zeros(12)
     kernels["householder"](M, tau)
@@ -331,9 +348,9 @@ class CompiledSteps(Steps):
 
     def _pass(self, xp, xq, x0a):
         b, K = self.b, self.K
-        start, inc = incidence(b)
+        start, inc, ring = incidence(b)
         out = _Gradient(b.x0.shape[1], self.n_blocks)
-        self._blocks(lambda b0, b1: K["gradient_transpose"](xp, xq, start, inc, self.params, self.coef,
+        self._blocks(lambda b0, b1: K["gradient_transpose"](xp, xq, start, inc, ring, self.params, self.coef,
                                                             x0a, out.g, out.T, out.sums, b0, b1))
         return out
 
@@ -347,10 +364,10 @@ class CompiledSteps(Steps):
         (`solve_kernels.gradient_transpose3`): (g_x, g_y, g_z) as `axis_gradient` gives them."""
         b, K = self.b, self.K
         self.refresh((0, 1, 2), D)
-        start, inc = incidence(b)
+        start, inc, ring = incidence(b)
         n_slots = b.x0.shape[1]
         g, T, sums = np.empty((3, n_slots)), np.empty((3, self.n_blocks, 64)), np.empty((3, 2, self.n_blocks))
-        self._blocks(lambda b0, b1: K["gradient_transpose3"](self.X, start, inc, self.params, self.coef,
+        self._blocks(lambda b0, b1: K["gradient_transpose3"](self.X, start, inc, ring, self.params, self.coef,
                                                              self.x0, g, T, sums, b0, b1))
         out = []
         for a in range(3):
@@ -422,25 +439,40 @@ def _along(e, X):
 
 
 def incidence(binding):
-    """The faces around every slot of `binding` (`solve_kernels`): (start (n_slots + 1,) int64,
-    pairs (2 * 3F,) int32), made once per binding (kept as `binding.incidence`) from its topology's
-    faces around every vertex (made once per topology: a mesh re-embedded on every frame only
-    renumbers them)."""
+    """The faces around every slot of `binding` as the gradient passes read them
+    (`solve_kernels.vertex_rings`): (start (n_slots + 1,) int64, entries int32, ring (n_slots,)
+    int8), made once per binding (kept as `binding.incidence`) from its topology's faces around
+    every vertex (made once per topology: a mesh re-embedded on every frame only renumbers them)."""
     got = getattr(binding, "incidence", None)
     if got is None:
         K, topo, slot = _state["kernels"], binding.topology, binding.slot
-        around = getattr(topo, "_vertex_incidence", None)
-        if around is None:
-            start_v = np.zeros(topo.n_verts + 1, np.int64)
-            pairs_v = np.empty(6 * len(topo.tris), np.int32)
-            K["vertex_incidence"](topo.tris_t, start_v, pairs_v)
-            around = topo._vertex_incidence = (start_v, pairs_v)
-        start = np.zeros(binding.x0.shape[1] + 1, np.int64)
-        pairs = np.empty(6 * binding.n_faces, np.int32)
+        around = vertex_rings(topo)
+        n_slots = binding.x0.shape[1]
+        start = np.zeros(n_slots + 1, np.int64)
+        entries, ring = np.empty(len(around[1]), np.int32), np.zeros(n_slots, np.int8)
         K["slot_incidence_start"](slot, around[0], start)
-        parallel.run(lambda p: K["slot_incidence_fill"](slot, around[0], around[1], start, pairs, p.start, p.stop),
+        parallel.run(lambda p: K["slot_incidence_fill"](slot, *around, start, entries, ring, p.start, p.stop),
                      binding.vertex_parts)
-        got = binding.incidence = (start, pairs)
+        got = binding.incidence = (start, entries, ring)
+    return got
+
+
+def vertex_rings(topology):
+    """The faces around every vertex of a `Topology` as rings where they form one closed fan, as
+    pairs elsewhere (`solve_kernels.vertex_rings`): (start (V + 1,) int64, entries int32,
+    ring (V,) int8), made once per topology (kept on it)."""
+    got = getattr(topology, "_vertex_rings", None)
+    if got is None:
+        K = _state["kernels"]
+        around = getattr(topology, "_vertex_incidence", None)
+        if around is None:
+            start_v = np.zeros(topology.n_verts + 1, np.int64)
+            pairs_v = np.empty(6 * len(topology.tris), np.int32)
+            K["vertex_incidence"](topology.tris_t, start_v, pairs_v)
+            around = topology._vertex_incidence = (start_v, pairs_v)
+        rstart, entries, ring = np.empty(topology.n_verts + 1, np.int64), np.empty_like(around[1]), np.empty(topology.n_verts, np.int8)
+        K["vertex_rings"](*around, rstart, entries, ring)
+        got = topology._vertex_rings = (rstart, entries[:rstart[-1]], ring)
     return got
 
 

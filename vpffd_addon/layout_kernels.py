@@ -22,11 +22,11 @@ def define(njit):
     """The kernels, compiled by `njit`: {name: function}."""
 
     @njit
-    def slots(order, run_start, run_len, first_block, bs, slot, sorted_slot):
-        # The slot of every vertex (slot, by vertex) and of every sorted position (sorted_slot):
-        # runs cut into blocks of bs. Counters, not j // bs and j % bs: an integer division per
-        # vertex would cost more than the rest.
-        for r in range(run_start.shape[0]):
+    def slots(order, run_start, run_len, first_block, bs, slot, sorted_slot, r0, r1):
+        # The slot of every vertex (slot, by vertex) and of every sorted position (sorted_slot)
+        # of runs r0..r1-1: runs cut into blocks of bs. Counters, not j // bs and j % bs: an
+        # integer division per vertex would cost more than the rest.
+        for r in range(r0, r1):
             blk = first_block[r]
             pos = 0
             for j in range(run_len[r]):
@@ -38,19 +38,20 @@ def define(njit):
                 pos += 1
 
     @njit
-    def sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, eps, params, influence, x0):
+    def sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, eps, params, influence, x0, i0, i1):
         # Everything a slot holds, written in slot order from the vertices taken in sorted order
+        # (positions i0..i1-1 of it: a worker thread's part)
         # (a row read each, where writing at scattered slots would touch a line per row of the
         # outputs): the compiled solve's per-slot parameters (4, n_slots) (t along each axis, as
         # `bases.axis_cells`, and the influence s), the influence (n_slots,) and the rest
         # coordinates x0 (3, n_slots) relative to the volume origins (rel (V, 3)), in the
         # binding's precision. Returns how many vertices lie outside the lattice's box by more
-        # than eps, as `Lattice.outside_count` (an axis of one point has no outside).
+        # than eps, as `Lattice.outside_count` (an axis of one point has no outside), in the part.
         outside = 0
         du0 = (hi[0] - lo[0]) / (shape[0] - 1)
         du1 = (hi[1] - lo[1]) / (shape[1] - 1)
         du2 = (hi[2] - lo[2]) / (shape[2] - 1)
-        for i in range(order.shape[0]):
+        for i in range(i0, i1):
             v = order[i]
             sl = sorted_slot[i]
             out = False
@@ -89,12 +90,13 @@ def define(njit):
                            + z0 * (x1 * y2 - y1 * x2)) / 6.0
 
     @njit
-    def axis_cells(x, n, lo, hi, cell, tt):
-        # `bases.axis_cells` for one local axis (n >= 2): the unclamped cell (V,) int64 and t (V,).
+    def axis_cells(xyz, a, n, lo, hi, cell, tt, v0, v1):
+        # `bases.axis_cells` for local axis a (n >= 2) of the coordinates xyz (V, 3): the
+        # unclamped cell (V,) int64 and t (V,), of vertices v0..v1-1.
         du = (hi - lo) / (n - 1)
         top = n + 2.0
-        for v in range(x.shape[0]):
-            u = (x[v] - lo) / du
+        for v in range(v0, v1):
+            u = (xyz[v, a] - lo) / du
             if u < -3.0:
                 u = -3.0
             elif u > top:
@@ -104,31 +106,40 @@ def define(njit):
             tt[v] = u - fi
 
     @njit
-    def counting_order(cu, cv, cw, labels, dims, start, order):
-        # The vertices in stable order of their key (island, cell), as np.argsort(kind="stable")
-        # of `binding.bind_lattice`'s keys, by a counting sort: the key of vertex v is
-        # (labels[v] * n_cells + (cw + 3) * dv + cv + 3) * du + cu + 3 with dims = (du, dv, dw)
-        # (labels empty: one island). start (K + 1,) zeroed, K = n_islands * du * dv * dw, is
-        # left holding where every key's vertices begin in `order` (V,).
-        K = start.shape[0] - 1
+    def cell_keys(cu, cv, cw, labels, dims, key, counts, v0, v1):
+        # The key (island, cell) of vertices v0..v1-1 into key (V,), counted by key into counts
+        # (K,) (zeroed): (labels[v] * n_cells + (cw + 3) * dv + cv + 3) * du + cu + 3 with
+        # dims = (du, dv, dw) (labels empty: one island).
         du, dv = dims[0], dims[1]
         n_cells = dims[0] * dims[1] * dims[2]
         one = labels.shape[0] == 0
-        V = cu.shape[0]
-        key = np.empty(V, np.int64)
-        for v in range(V):
+        for v in range(v0, v1):
             k = ((cw[v] + 3) * dv + cv[v] + 3) * du + cu[v] + 3
             if not one:
                 k += labels[v] * n_cells
             key[v] = k
-            start[k + 1] += 1
-        for k in range(K):
-            start[k + 1] += start[k]
-        pos = start[:K].copy()
-        for v in range(V):
+            counts[k] += 1
+
+    @njit
+    def key_starts(counts, start, place):
+        # From every part's counts (P, K): where every key's vertices begin in the order (start
+        # (K + 1,)) and where each part's vertices of that key go (place (P, K)): parts in vertex
+        # order within a key, so the order is stable whatever the number of parts.
+        pos = 0
+        for k in range(counts.shape[1]):
+            start[k] = pos
+            for p in range(counts.shape[0]):
+                place[p, k] = pos
+                pos += counts[p, k]
+        start[counts.shape[1]] = pos
+
+    @njit
+    def place_keys(key, place, order, v0, v1):
+        # Vertices v0..v1-1 into the order at their key's next place (place (K,), a part's row).
+        for v in range(v0, v1):
             k = key[v]
-            order[pos[k]] = v
-            pos[k] += 1
+            order[place[k]] = v
+            place[k] += 1
 
     @njit
     def components(tris_t, parent, labels):
@@ -201,18 +212,19 @@ def define(njit):
         return n_faces > 0
 
     @njit
-    def positions(verts, labels, out, lo, hi):
+    def positions(verts, labels, out, lo, hi, v0, v1):
         # out (V, 3) = verts in float64 and, per island (labels (V,), or empty for one), the
         # bounds lo, hi (k, 3) of its finite coordinates, as `mesh.check_verts` and
-        # `Topology.island_bounds` compute them; one pass instead of five. Returns how many
-        # vertices have a non-finite coordinate (the caller then says which, in NumPy).
+        # `Topology.island_bounds` compute them; one pass instead of five, over vertices v0..v1-1
+        # (a part's bounds; the caller takes the least and greatest of the parts'). Returns how
+        # many have a non-finite coordinate (the caller then says which, in NumPy).
         for r in range(lo.shape[0]):
             for a in range(3):
                 lo[r, a] = np.inf
                 hi[r, a] = -np.inf
         bad = 0
         one = labels.shape[0] == 0
-        for v in range(verts.shape[0]):
+        for v in range(v0, v1):
             r = 0 if one else labels[v]
             finite = True
             for a in range(3):
@@ -230,15 +242,16 @@ def define(njit):
         return bad
 
     @njit
-    def relative(verts, origin, labels, rel):
+    def relative(verts, origin, labels, rel, v0, v1):
         # rel (V, 3) = verts - the origin of each vertex's island (origin (k, 3); labels empty
-        # when every vertex takes origin[0]).
+        # when every vertex takes origin[0]), for vertices v0..v1-1.
         one = labels.shape[0] == 0
-        for v in range(verts.shape[0]):
+        for v in range(v0, v1):
             r = 0 if one else labels[v]
             for a in range(3):
                 rel[v, a] = verts[v, a] - origin[r, a]
 
     return {"slots": slots, "sorted_values": sorted_values, "face_volumes": face_volumes,
             "axis_cells": axis_cells, "positions": positions, "relative": relative,
-            "counting_order": counting_order, "components": components, "closed": closed}
+            "cell_keys": cell_keys, "key_starts": key_starts, "place_keys": place_keys,
+            "components": components, "closed": closed}

@@ -6,20 +6,24 @@ coordinates along that axis anew. These kernels do that in two passes over the s
 with no stored weights:
 
 - `forward`: X[c] = x0[c] + S B D[c] for the components asked for, a block of slots at a time.
-  The block's 64 control points are gathered once and each slot's basis weights are computed from
-  its cell coordinates (`Binding.params`: t_u, t_v, t_w and the influence s, 16 bytes a slot in
-  float32, where the stored weights took 80);
-- `gradient_transpose`: per slot, the gradient from the faces around it (a vertex-centred sum: no
-  scatter, no per-thread copies of g), and per block the 64 entries of (S B)^T g and the two sums.
-  They are kept per block and added up in block order (`reduce_blocks`), so a result is the same
-  whatever the number of threads.
+  Within one lattice cell the deformation is a tricubic polynomial in the cell coordinates: its
+  64 coefficients are made once per run of blocks in a cell from the cell's control points, and
+  each slot evaluates it at its cell coordinates (`Binding.params`: t_u, t_v, t_w and the
+  influence s, 16 bytes a slot in float32, where NumPy's stored weights take 80) by Horner's
+  rule, with no basis weights per slot;
+- `gradient_transpose`: per slot, the gradient from the faces around it (a vertex-centred sum
+  around a ring of neighbours where they close a fan: no scatter, no per-thread copies of g), and
+  per block the 64 entries of (S B)^T g (the block's moments of g in the cell coordinates, turned
+  into the control points' entries by the same cubics) and the two sums. They are kept per block
+  and added up in block order (`reduce_blocks`), so a result is the same whatever the number of
+  threads.
 
 Blender's taps i-1..i+2 are clamped to the grid: a block gathers its control points at the clamped
 indices (repeating the end points) instead of folding the weights, which is the same sum. Every
 block holds one (island, cell) whose cell index is the unclamped one (`bases.axis_cells`), so its
 slots share their taps.
 
-`constants(interpolation, dtype)` makes the constants the weights are computed with.
+`constants(interpolation, dtype)` makes the constants: every axis's four weights as cubics in t.
 `define(njit, njit_sums, inline)` returns the kernels by name; `compiled.py` compiles them
 (`njit_sums` may reorder the additions of a sum and fuse multiply-adds, to vectorise them; the
 order is fixed when compiled, so results stay the same from run to run). Nothing here imports
@@ -58,32 +62,6 @@ def define(njit, njit_sums, inline):
     return {name: (njit_sums if kind == "njit_sums" else njit)(_SOURCE[name]) for name, kind in _KERNELS.items()}
 
 
-def weights(params, a, base, bs, c, w):
-    # The four weights of axis a at the block's slots: w (4, bs), each a cubic in t by
-    # Horner's rule with the axis's coefficients c[a] (4, 4) (`constants`). One loop for every
-    # kind, in the binding's precision (float32 slots are weighed in float32: twice the lanes).
-    c00, c01, c02, c03 = c[a, 0, 0], c[a, 0, 1], c[a, 0, 2], c[a, 0, 3]
-    c10, c11, c12, c13 = c[a, 1, 0], c[a, 1, 1], c[a, 1, 2], c[a, 1, 3]
-    c20, c21, c22, c23 = c[a, 2, 0], c[a, 2, 1], c[a, 2, 2], c[a, 2, 3]
-    c30, c31, c32, c33 = c[a, 3, 0], c[a, 3, 1], c[a, 3, 2], c[a, 3, 3]
-    for s in range(bs):
-        t = params[a, base + s]
-        w[0, s] = ((c03 * t + c02) * t + c01) * t + c00
-        w[1, s] = ((c13 * t + c12) * t + c11) * t + c10
-        w[2, s] = ((c23 * t + c22) * t + c21) * t + c20
-        w[3, s] = ((c33 * t + c32) * t + c31) * t + c30
-
-
-def block_weights(params, base, bs, c, wu, wv, ww):
-    # The block's weights per axis; ww carries the influence s.
-    weights(params, 0, base, bs, c, wu)
-    weights(params, 1, base, bs, c, wv)
-    weights(params, 2, base, bs, c, ww)
-    for k in range(4):
-        for s in range(bs):
-            ww[k, s] *= params[3, base + s]
-
-
 def same_cell(block_cell, a, b):
     # Whether blocks a and b lie in one cell (consecutive blocks of a run do: taps once).
     return (block_cell[a, 0] == block_cell[b, 0] and block_cell[a, 1] == block_cell[b, 1]
@@ -106,68 +84,184 @@ def taps(cell, shape, out):
                 q += 1
 
 
+def cell_polynomial(D, comp, idx, c, A, B, C):
+    # The deformation of component comp within one cell as a tricubic polynomial: C (64,) its
+    # coefficients, C[(r * 4 + q) * 4 + p] of u^p v^q w^r, from the cell's 64 control points
+    # D[comp, idx] and the axes' weights as cubics in t (c: `constants`), one axis at a time
+    # (A, B (64,) float64 scratch): sum_kji D[k, j, i] w_i(u) w_j(v) w_k(w).
+    for kj in range(16):
+        for p in range(4):
+            t = 0.0
+            for i in range(4):
+                t += D[comp, idx[kj * 4 + i]] * c[0, i, p]
+            A[kj * 4 + p] = t
+    for k in range(4):
+        for q in range(4):
+            for p in range(4):
+                t = 0.0
+                for j in range(4):
+                    t += A[(k * 4 + j) * 4 + p] * c[1, j, q]
+                B[(k * 4 + q) * 4 + p] = t
+    for r in range(4):
+        for qp in range(16):
+            t = 0.0
+            for k in range(4):
+                t += B[k * 16 + qp] * c[2, k, r]
+            C[r * 16 + qp] = t
+
+
 def forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1):
     # X[comp] = x0[comp] + S B D[comp] for comp in comps, blocks b0..b1-1. D (3, N) and X, x0
     # (3, n_slots) in the steps' precision (or one row each, comps then [0]); c: `constants`.
+    # Once per run of blocks in one cell, each component's tricubic (`cell_polynomial`); per
+    # slot then 16 cubics in u by Horner's rule, 4 in v and one in w: 64 multiply-adds and no
+    # weights (docs/performance.md, "The per-frame passes").
     bs = params.shape[1] // block_cell.shape[0]
     dt = params.dtype
-    wu = np.empty((4, bs), dt)
-    wv = np.empty((4, bs), dt)
-    ww = np.empty((4, bs), dt)
+    n_comps = comps.shape[0]
+    C = np.empty((n_comps, 64), dt)
+    A = np.empty(64)
+    B = np.empty(64)
+    Cc = np.empty(64)
     acc = np.empty(bs, dt)
-    acck = np.empty(bs, dt)
+    uu = np.empty(bs, dt)
+    vv = np.empty(bs, dt)
+    ww = np.empty(bs, dt)
     idx = np.empty(64, np.int64)
     last = -1
     for bl in range(b0, b1):
         base = bl * bs
-        block_weights(params, base, bs, c, wu, wv, ww)
         if last < 0 or not same_cell(block_cell, last, bl):
             taps(block_cell[bl], shape, idx)
             last = bl
-        for ci in range(comps.shape[0]):
+            for ci in range(n_comps):
+                cell_polynomial(D, comps[ci], idx, c, A, B, Cc)
+                for q in range(64):
+                    C[ci, q] = Cc[q]
+        for s in range(bs):
+            uu[s] = params[0, base + s]
+            vv[s] = params[1, base + s]
+            ww[s] = params[2, base + s]
+        for ci in range(n_comps):
             comp = comps[ci]
             for s in range(bs):
                 acc[s] = 0.0
-            for k in range(4):
+            for r in range(3, -1, -1):
+                o = r * 16
+                k00, k01, k02, k03 = C[ci, o], C[ci, o + 1], C[ci, o + 2], C[ci, o + 3]
+                k10, k11, k12, k13 = C[ci, o + 4], C[ci, o + 5], C[ci, o + 6], C[ci, o + 7]
+                k20, k21, k22, k23 = C[ci, o + 8], C[ci, o + 9], C[ci, o + 10], C[ci, o + 11]
+                k30, k31, k32, k33 = C[ci, o + 12], C[ci, o + 13], C[ci, o + 14], C[ci, o + 15]
                 for s in range(bs):
-                    acck[s] = 0.0
-                for j in range(4):
-                    q = (k * 4 + j) * 4
-                    d0 = D[comp, idx[q]]
-                    d1 = D[comp, idx[q + 1]]
-                    d2 = D[comp, idx[q + 2]]
-                    d3 = D[comp, idx[q + 3]]
-                    for s in range(bs):
-                        acck[s] += wv[j, s] * (wu[0, s] * d0 + wu[1, s] * d1 + wu[2, s] * d2 + wu[3, s] * d3)
-                for s in range(bs):
-                    acc[s] += ww[k, s] * acck[s]
+                    u = uu[s]
+                    v = vv[s]
+                    e0 = ((k03 * u + k02) * u + k01) * u + k00
+                    e1 = ((k13 * u + k12) * u + k11) * u + k10
+                    e2 = ((k23 * u + k22) * u + k21) * u + k20
+                    e3 = ((k33 * u + k32) * u + k31) * u + k30
+                    acc[s] = acc[s] * ww[s] + (((e3 * v + e2) * v + e1) * v + e0)
             for s in range(bs):
-                X[comp, base + s] = x0[comp, base + s] + acc[s]
+                X[comp, base + s] = x0[comp, base + s] + params[3, base + s] * acc[s]
 
 
-def block_transpose(gs, bs, wu, wv, ww, h, T):
-    # T (64,) = the block's piece of (S B)^T g, g = gs (bs,): sum_s ww[k] wv[j] wu[i] g.
-    for k in range(4):
-        for j in range(4):
-            for s in range(bs):
-                h[s] = ww[k, s] * wv[j, s] * gs[s]
-            q = (k * 4 + j) * 4
+def block_powers(params, base, bs, pu, pv, pw):
+    # The powers of the block's cell coordinates in float64, per slot: pu[p] = u^p (p = 1..3),
+    # pv[q] = v^q and pw[r] = s w^r with the influence s (q, r = 0..3), all (4, bs).
+    for s in range(bs):
+        u = np.float64(params[0, base + s])
+        v = np.float64(params[1, base + s])
+        w = np.float64(params[2, base + s])
+        si = np.float64(params[3, base + s])
+        pu[1, s] = u
+        pu[2, s] = u * u
+        pu[3, s] = u * u * u
+        pv[0, s] = 1.0
+        pv[1, s] = v
+        pv[2, s] = v * v
+        pv[3, s] = v * v * v
+        pw[0, s] = si
+        pw[1, s] = si * w
+        pw[2, s] = si * w * w
+        pw[3, s] = si * w * w * w
+
+
+def block_transpose(gs, bs, c, pu, pv, pw, h, M, A, B, T):
+    # T (64,) = the block's piece of (S B)^T g, g = gs (bs,), from the powers of `block_powers`:
+    # the moments M[r, q, p] = sum_s g s w^r v^q u^p, then T[k, j, i] = sum_pqr c[0, i, p]
+    # c[1, j, q] c[2, k, r] M[r, q, p] (c: `constants`), one axis at a time (A, B scratch):
+    # the transpose of `cell_polynomial` and the forward's evaluation, with no weights per slot.
+    for r in range(4):
+        for s in range(bs):
+            h[s] = gs[s] * pw[r, s]
+        for q in range(4):
             a0 = 0.0
             a1 = 0.0
             a2 = 0.0
             a3 = 0.0
             for s in range(bs):
-                a0 += h[s] * wu[0, s]
-                a1 += h[s] * wu[1, s]
-                a2 += h[s] * wu[2, s]
-                a3 += h[s] * wu[3, s]
-            T[q] = a0
-            T[q + 1] = a1
-            T[q + 2] = a2
-            T[q + 3] = a3
+                x = h[s] * pv[q, s]
+                a0 += x
+                a1 += x * pu[1, s]
+                a2 += x * pu[2, s]
+                a3 += x * pu[3, s]
+            o = (r * 4 + q) * 4
+            M[o] = a0
+            M[o + 1] = a1
+            M[o + 2] = a2
+            M[o + 3] = a3
+    for rq in range(16):
+        for i in range(4):
+            t = 0.0
+            for p in range(4):
+                t += c[0, i, p] * M[rq * 4 + p]
+            A[rq * 4 + i] = t
+    for r in range(4):
+        for j in range(4):
+            for i in range(4):
+                t = 0.0
+                for q in range(4):
+                    t += c[1, j, q] * A[(r * 4 + q) * 4 + i]
+                B[(r * 4 + j) * 4 + i] = t
+    for k in range(4):
+        for ji in range(16):
+            t = 0.0
+            for r in range(4):
+                t += c[2, k, r] * B[r * 16 + ji]
+            T[k * 16 + ji] = t
 
 
-def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b1):
+def fan_gradient(xp, xq, inc_start, inc, ring, v):
+    # The sum over the faces around slot v of xp[m] xq[n] - xq[m] xp[n] (component a of m x n
+    # for the face (v, m, n), the other two coordinates xp, xq): where they form one closed fan
+    # (ring[v]: entries r_0 .. r_d-1, faces (v, r_k, r_k+1) and (v, r_d-1, r_0)) each neighbour's
+    # two coordinates are gathered once, else the pairs (m, n) one face at a time
+    # (`vertex_rings`).
+    s0 = inc_start[v]
+    s1 = inc_start[v + 1]
+    acc = 0.0
+    if ring[v]:
+        r = inc[s0]
+        p0 = xp[r]
+        q0 = xq[r]
+        pm = p0
+        qm = q0
+        for e in range(s0 + 1, s1):
+            n = inc[e]
+            pn = xp[n]
+            qn = xq[n]
+            acc += pm * qn - qm * pn
+            pm = pn
+            qm = qn
+        acc += pm * q0 - qm * p0
+    else:
+        for e in range(s0, s1, 2):
+            m = inc[e]
+            n = inc[e + 1]
+            acc += xp[m] * xq[n] - xq[m] * xp[n]
+    return acc
+
+
+def gradient_transpose(xp, xq, inc_start, inc, ring, params, c, x0a, g, T, sums, b0, b1):
     # Blocks b0..b1-1: g (n_slots,) float64, the volume gradient along the axis that xp, xq
     # (n_slots,) complete (products in their precision, a product and a difference possibly fused
     # into one rounding, sums in float64; `volume.gradient_component` is the NumPy reference);
@@ -175,10 +269,8 @@ def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b
     # sums[0, bl] = x0a . g (when x0a is not empty) and sums[1, bl] = sum |s g|.
     n_blocks = T.shape[0]
     bs = g.shape[0] // n_blocks
-    dt = params.dtype
-    wu = np.empty((4, bs), dt)
-    wv = np.empty((4, bs), dt)
-    ww = np.empty((4, bs), dt)
+    pu, pv, pw = np.empty((4, bs)), np.empty((4, bs)), np.empty((4, bs))
+    M, A, B = np.empty(64), np.empty(64), np.empty(64)
     gs = np.empty(bs)
     h = np.empty(bs)
     with_x0 = x0a.shape[0] > 0
@@ -188,11 +280,7 @@ def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b
         sf = 0.0
         for s in range(bs):
             v = base + s
-            acc = 0.0
-            for e in range(inc_start[v], inc_start[v + 1]):
-                m = inc[2 * e]
-                n = inc[2 * e + 1]
-                acc += xp[m] * xq[n] - xq[m] * xp[n]
+            acc = fan_gradient(xp, xq, inc_start, inc, ring, v)
             gv = acc * (1.0 / 6.0)
             g[v] = gv
             gs[s] = gv
@@ -201,21 +289,19 @@ def gradient_transpose(xp, xq, inc_start, inc, params, c, x0a, g, T, sums, b0, b
             sf += abs(params[3, v] * gv)
         sums[0, bl] = sx
         sums[1, bl] = sf
-        block_weights(params, base, bs, c, wu, wv, ww)
-        block_transpose(gs, bs, wu, wv, ww, h, T[bl])
+        block_powers(params, base, bs, pu, pv, pw)
+        block_transpose(gs, bs, c, pu, pv, pw, h, M, A, B, T[bl])
 
 
-def gradient_transpose3(X, inc_start, inc, params, c, x0, g, T, sums, b0, b1):
+def gradient_transpose3(X, inc_start, inc, ring, params, c, x0, g, T, sums, b0, b1):
     # `gradient_transpose` for the three axes at once, from one gathering of the faces around each
     # slot (the gradient along axis a is component a of the sum of the faces' cross products):
     # for the joint steps, which linearise every axis at the same coordinates X (3, n_slots).
     # g (3, n_slots), T (3, n_blocks, 64), sums (3, 2, n_blocks); x0 (3, n_slots) always given.
     n_blocks = T.shape[1]
     bs = g.shape[1] // n_blocks
-    dt = params.dtype
-    wu = np.empty((4, bs), dt)
-    wv = np.empty((4, bs), dt)
-    ww = np.empty((4, bs), dt)
+    pu, pv, pw = np.empty((4, bs)), np.empty((4, bs)), np.empty((4, bs))
+    M, A, B = np.empty(64), np.empty(64), np.empty(64)
     gs = np.empty((3, bs))
     h = np.empty(bs)
     x = X[0]
@@ -234,12 +320,29 @@ def gradient_transpose3(X, inc_start, inc, params, c, x0, g, T, sums, b0, b1):
             a0 = 0.0
             a1 = 0.0
             a2 = 0.0
-            for e in range(inc_start[v], inc_start[v + 1]):
-                m = inc[2 * e]
-                n = inc[2 * e + 1]
-                a0 += y[m] * z[n] - z[m] * y[n]
-                a1 += z[m] * x[n] - x[m] * z[n]
-                a2 += x[m] * y[n] - y[m] * x[n]
+            s0 = inc_start[v]
+            s1 = inc_start[v + 1]
+            if ring[v]:                 # (one closed fan: see `fan_gradient`)
+                r = inc[s0]
+                x_0, y_0, z_0 = x[r], y[r], z[r]
+                xm, ym, zm = x_0, y_0, z_0
+                for e in range(s0 + 1, s1):
+                    n = inc[e]
+                    xn, yn, zn = x[n], y[n], z[n]
+                    a0 += ym * zn - zm * yn
+                    a1 += zm * xn - xm * zn
+                    a2 += xm * yn - ym * xn
+                    xm, ym, zm = xn, yn, zn
+                a0 += ym * z_0 - zm * y_0
+                a1 += zm * x_0 - xm * z_0
+                a2 += xm * y_0 - ym * x_0
+            else:
+                for e in range(s0, s1, 2):
+                    m = inc[e]
+                    n = inc[e + 1]
+                    a0 += y[m] * z[n] - z[m] * y[n]
+                    a1 += z[m] * x[n] - x[m] * z[n]
+                    a2 += x[m] * y[n] - y[m] * x[n]
             g0 = a0 * (1.0 / 6.0)
             g1 = a1 * (1.0 / 6.0)
             g2 = a2 * (1.0 / 6.0)
@@ -262,9 +365,9 @@ def gradient_transpose3(X, inc_start, inc, params, c, x0, g, T, sums, b0, b1):
         sums[0, 1, bl] = sf0
         sums[1, 1, bl] = sf1
         sums[2, 1, bl] = sf2
-        block_weights(params, base, bs, c, wu, wv, ww)
+        block_powers(params, base, bs, pu, pv, pw)
         for a in range(3):
-            block_transpose(gs[a], bs, wu, wv, ww, h, T[a, bl])
+            block_transpose(gs[a], bs, c, pu, pv, pw, h, M, A, B, T[a, bl])
 
 
 def reduce_blocks(T, block_cell, block_row, shape, alpha):
@@ -402,21 +505,76 @@ def vertex_incidence(tris_t, start, pairs):
             pos[a] = p + 1
 
 
+def vertex_rings(start_v, pairs_v, rstart, entries, ring):
+    # The faces around every vertex (`vertex_incidence`) as the gradient passes read them: where
+    # they form one closed fan, its ring of d neighbours (ring[v] = 1; face k is (v, r_k, r_k+1),
+    # the last wraps to r_0: `fan_gradient`), else its d pairs as 2d entries (ring[v] = 0: an
+    # open fan, or one the walk below does not close). rstart (V + 1,): where each vertex's
+    # entries begin; entries as long as pairs_v. The walk goes from face to face through unused
+    # faces only and must come back to its first neighbour after all d: then the ring's terms are
+    # the faces' terms, each once, whatever the fan's shape.
+    n = start_v.shape[0] - 1
+    most = 0
+    for v in range(n):
+        most = max(most, start_v[v + 1] - start_v[v])
+    used = np.zeros(most, np.bool_)
+    o = 0
+    for v in range(n):
+        s0 = start_v[v]
+        s1 = start_v[v + 1]
+        d = s1 - s0
+        rstart[v] = o
+        ok = d >= 3
+        if ok:
+            for k in range(d):
+                used[k] = False
+            first = pairs_v[2 * s0]
+            entries[o] = first
+            used[0] = True
+            nxt = pairs_v[2 * s0 + 1]
+            for k in range(1, d):
+                found = -1
+                for e in range(s0, s1):
+                    if pairs_v[2 * e] == nxt and not used[e - s0]:
+                        found = e
+                        break
+                if found < 0:
+                    ok = False
+                    break
+                used[found - s0] = True
+                entries[o + k] = nxt
+                nxt = pairs_v[2 * found + 1]
+            if nxt != first:
+                ok = False
+        if ok:
+            ring[v] = 1
+            o += d
+        else:
+            ring[v] = 0
+            for e in range(s0, s1):
+                entries[o] = pairs_v[2 * e]
+                entries[o + 1] = pairs_v[2 * e + 1]
+                o += 2
+    rstart[n] = o
+
+
 def slot_incidence_start(slot, start_v, start):
-    # start (n_slots + 1,) zeroed: where each slot's pairs begin (a vertex's pairs, in slot order).
+    # start (n_slots + 1,) zeroed: where each slot's entries begin (a vertex's, in slot order).
     for v in range(slot.shape[0]):
         start[slot[v] + 1] = start_v[v + 1] - start_v[v]
     for sl in range(start.shape[0] - 1):
         start[sl + 1] += start[sl]
 
 
-def slot_incidence_fill(slot, start_v, pairs_v, start, pairs, v0, v1):
-    # The pairs of vertices v0..v1-1, as slots, at their slots' places (each vertex its own).
+def slot_incidence_fill(slot, start_v, entries_v, ring_v, start, entries, ring, v0, v1):
+    # The entries of vertices v0..v1-1 (`vertex_rings`), as slots, at their slots' places (each
+    # vertex its own), and whether each is a ring.
     for v in range(v0, v1):
-        o = start[slot[v]]
+        sl = slot[v]
+        o = start[sl]
+        ring[sl] = ring_v[v]
         for e in range(start_v[v], start_v[v + 1]):
-            pairs[2 * o] = slot[pairs_v[2 * e]]
-            pairs[2 * o + 1] = slot[pairs_v[2 * e + 1]]
+            entries[o] = slot[entries_v[e]]
             o += 1
 
 
@@ -429,11 +587,13 @@ def to_verts(X, slot, origin, vertex_row, out, v0, v1):
             out[v, c] = np.float64(X[c, sl]) + origin[row, c]
 
 
-_HELPERS = ("weights", "block_weights", "same_cell", "taps", "block_transpose", "triangular_solve")
+_HELPERS = ("same_cell", "taps", "block_powers", "block_transpose", "triangular_solve", "fan_gradient",
+            "cell_polynomial")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
             "reduce_blocks": "njit", "householder": "njit_sums", "apply_q": "njit_sums",
             "condition": "njit", "triangular_solve": "njit",
-            "vertex_incidence": "njit", "slot_incidence_start": "njit", "slot_incidence_fill": "njit",
+            "vertex_incidence": "njit", "vertex_rings": "njit", "slot_incidence_start": "njit",
+            "slot_incidence_fill": "njit",
             "to_verts": "njit"}
 #: The plain functions, as written (`define` rebinds the helpers' names to compiled ones).
 _SOURCE = {name: globals()[name] for name in _HELPERS + tuple(_KERNELS)}

@@ -1,0 +1,112 @@
+"""The compiled passes of a lattice bind, split over the worker threads (docs/performance.md,
+"Re-embedding and the first bind").
+
+A mesh that moves through the lattice is embedded anew on every frame, so every pass here is
+per-frame work and runs on every core: each thread takes a contiguous part of the vertices (or of
+the sorted vertices, or of the faces), and what the parts give is combined so that the result is
+the same bit for bit on any number of threads (bounds by least and greatest, counts by sums, the
+counting sort's places laid out part after part within every key). `kernels` is
+`compiled.bind_kernels(...)`; the kernels themselves are in `layout_kernels.py`.
+"""
+import numpy as np
+
+from . import parallel
+
+#: Parts of the counting sort keep a count per key each: more parts only where those counts stay
+#: small beside the vertices (many islands give many keys).
+_KEYS_PER_VERTEX = 0.25
+
+
+def positions(kernels, verts, labels, k):
+    """verts (V, 3) float32 or float64 -> (out (V, 3) float64, lo (k, 3), hi (k, 3), bad): the
+    positions in float64, every island's bounds of its finite coordinates (labels (V,) int64, or
+    empty for one island) and how many vertices have a non-finite coordinate."""
+    V = len(verts)
+    out = np.empty((V, 3))
+    parts = parallel.split(V, V)
+    bounds = [(np.empty((k, 3)), np.empty((k, 3))) for _ in parts]
+
+    def part(j):
+        lo, hi = bounds[j]
+        return kernels["positions"](verts, labels, out, lo, hi, parts[j].start, parts[j].stop)
+    bad = sum(parallel.run(part, list(range(len(parts)))))
+    lo = np.min([b[0] for b in bounds], axis=0)
+    hi = np.max([b[1] for b in bounds], axis=0)
+    return out, lo, hi, bad
+
+
+def relative(kernels, verts, origin, labels):
+    """verts (V, 3) - the origin (k, 3) of each vertex's island (labels (V,), or empty for every
+    vertex to take origin[0]) -> (V, 3) float64."""
+    V = len(verts)
+    rel = np.empty_like(verts)
+    parallel.run(lambda p: kernels["relative"](verts, origin, labels, rel, p.start, p.stop), parallel.split(V, V))
+    return rel
+
+
+def axis_cells(kernels, verts, lattice):
+    """verts (V, 3) float64 coordinates -> [(cell (V,) int64, t (V,) float64)] per axis: the
+    unclamped cell and the coordinate within it (`bases.axis_cells`), every axis local."""
+    V = len(verts)
+    cells = [(np.empty(V, np.int64), np.empty(V)) for _ in range(3)]
+    args = [(int(lattice.shape[a]), float(lattice.lo[a]), float(lattice.hi[a])) for a in range(3)]
+
+    def part(p):
+        for a in range(3):
+            kernels["axis_cells"](verts, a, *args[a], *cells[a], p.start, p.stop)
+    parallel.run(part, parallel.split(V, V))
+    return cells
+
+
+def counting_order(kernels, cu, cv, cw, labels, dims, n_keys):
+    """The vertices in stable order of their key (island, cell), as np.argsort(kind="stable") of
+    `binding.bind_lattice`'s keys, by a counting sort. cu, cv, cw (V,) int64 unclamped cells,
+    labels (V,) int64 (empty: one island), dims (3,) int64 the cells per axis, n_keys = islands x
+    cells. Returns (start (n_keys + 1,) where every key's vertices begin, order (V,) int64)."""
+    V = len(cu)
+    parts = parallel.split(V, V)
+    if len(parts) > 1 and n_keys * len(parts) > _KEYS_PER_VERTEX * V:
+        parts = [slice(0, V)]
+    P = len(parts)
+    key = np.empty(V, np.int64)
+    counts = np.zeros((P, n_keys), np.int64)
+    parallel.run(lambda j: kernels["cell_keys"](cu, cv, cw, labels, dims, key, counts[j],
+                                                 parts[j].start, parts[j].stop), list(range(P)))
+    start, place = np.empty(n_keys + 1, np.int64), np.empty((P, n_keys), np.int64)
+    kernels["key_starts"](counts, start, place)
+    order = np.empty(V, np.int64)
+    parallel.run(lambda j: kernels["place_keys"](key, place[j], order, parts[j].start, parts[j].stop),
+                 list(range(P)))
+    return start, order
+
+
+def slots(kernels, runs, bs, slot, sorted_slot):
+    """The slot of every vertex into slot (V,) and of every sorted position into sorted_slot (V,)
+    (`layout_kernels.slots`), from runs = (order (V,), run_start, run_len, first_block); each
+    thread a part of the runs, cut where the sorted vertices' parts begin."""
+    order, run_start = runs[0], runs[1]
+    V = len(order)
+    cuts = [0] + [int(np.searchsorted(run_start, p.start)) for p in parallel.split(V, V)[1:]] + [len(run_start)]
+    parallel.run(lambda j: kernels["slots"](*runs, bs, slot, sorted_slot, cuts[j], cuts[j + 1]),
+                 list(range(len(cuts) - 1)))
+
+
+def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel, face_vol):
+    """What every slot holds (b.params, b.slot_influence, b.x0: `layout_kernels.sorted_values`)
+    and the faces' float64 volume terms into face_vol (F,) from rel (V, 3), each thread a part of
+    the sorted vertices and then a part of the faces. Returns how many vertices lie outside the
+    lattice."""
+    V, tris_t = b.n_verts, b.topology.tris_t
+    vparts, fparts = parallel.split(V, V), parallel.split(tris_t.shape[1], V)
+    shape = np.array(lattice.shape, np.int64)
+    eps = 1e-6 * lattice.size
+
+    def part(j):
+        outside = 0
+        if j < len(vparts):
+            outside = kernels["sorted_values"](order, sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, eps,
+                                               b.params, b.slot_influence, b.x0, vparts[j].start, vparts[j].stop)
+        if j < len(fparts):
+            kernels["face_volumes"](rel, tris_t, face_vol, fparts[j].start, fparts[j].stop)
+        return outside
+    return sum(parallel.run(part, list(range(max(len(vparts), len(fparts))))))

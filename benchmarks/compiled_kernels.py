@@ -1,7 +1,7 @@
 """The compiled solve against the NumPy steps, pass by pass, in one process, timed alternately (so
 that a machine's drift hits both alike):
 
-    python -m benchmarks.compiled_kernels [--subdivisions 7] [--lattice 6] [--rounds 9]
+    python -m benchmarks.compiled_kernels [--subdivisions 7] [--lattice 6] [--rounds 9] [--threads N]
 
 An icosphere (163,842 vertices at 7 subdivisions, radius 0.45) in a B-spline lattice spanning
 [-0.5, 0.5]^3, squashed and jittered, float32 (as the extension binds). Prints JSON: the milliseconds
@@ -12,6 +12,8 @@ An icosphere (163,842 vertices at 7 subdivisions, radius 0.45) in a B-spline lat
   (S B)^T g, x0_a . g and sum |s g| (one fused pass compiled; four NumPy calls);
 - `verts`: the deformed vertices from the slots;
 - `solve`: a whole XYZ solve;
+- `gathers` and `moments` (compiled only): the gradient pass's two halves apart, the gradient
+  around every slot's faces and, per block, the moments and transposed entries;
 
 for the NumPy steps and the compiled ones, the bytes each pass reads and writes per slot, the
 time `compiled.load()` took, and how far the two solves' vertices are apart (in lattice sizes).
@@ -23,7 +25,7 @@ import time
 import numpy as np
 
 import vpffd_addon as vp
-from vpffd_addon import compiled
+from vpffd_addon import compiled, parallel, solve_kernels
 from vpffd_addon.steps import NumpySteps
 
 
@@ -54,12 +56,49 @@ def passes(steps, D):
     return {"forward": lambda: steps._forward([0], D), "axis_pass": axis_pass, "verts": lambda: steps.verts(D)}
 
 
+def halves(b, D):
+    """{"gathers": callable, "moments": callable}: the compiled gradient pass's two halves, each
+    as a kernel of its own (compiled here, from the solve's own helpers) over every block on the
+    worker threads: the gradient around the faces of every slot along x, and per block the
+    moments of g and the transposed entries."""
+    import numba
+    fast = numba.njit(nogil=True, fastmath={"reassoc", "contract"}, error_model="numpy")
+    steps = compiled.CompiledSteps(b)
+    steps.refresh((0, 1, 2), D)
+    start, inc, ring = compiled.incidence(b)
+    n_blocks = b.block_cell.shape[0]
+    g, T = np.empty(b.x0.shape[1]), np.empty((n_blocks, 64))
+    coef = steps.coef
+
+    @fast
+    def gathers(xp, xq, start, inc, ring, g, b0, b1):
+        bs = g.shape[0] // n_blocks
+        for v in range(b0 * bs, b1 * bs):
+            g[v] = solve_kernels.fan_gradient(xp, xq, start, inc, ring, v) * (1.0 / 6.0)
+
+    @fast
+    def moments(params, c, g, T, b0, b1):
+        bs = g.shape[0] // T.shape[0]
+        pu, pv, pw = np.empty((4, bs)), np.empty((4, bs)), np.empty((4, bs))
+        M, A, B, h = np.empty(64), np.empty(64), np.empty(64), np.empty(bs)
+        for bl in range(b0, b1):
+            solve_kernels.block_powers(params, bl * bs, bs, pu, pv, pw)
+            solve_kernels.block_transpose(g[bl * bs:(bl + 1) * bs], bs, c, pu, pv, pw, h, M, A, B, T[bl])
+    parts = b.block_parts
+    X = steps.X
+    return {"gathers": lambda: parallel.run(lambda p: gathers(X[1], X[2], start, inc, ring, g, p.start, p.stop), parts),
+            "moments": lambda: parallel.run(lambda p: moments(steps.params, coef, g, T, p.start, p.stop), parts)}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser()
     ap.add_argument("--subdivisions", type=int, default=7)
     ap.add_argument("--lattice", type=int, default=6)
     ap.add_argument("--rounds", type=int, default=9)
+    ap.add_argument("--threads", type=int, default=None, help="worker threads (default: every core)")
     args = ap.parse_args(argv)
+    if args.threads:
+        parallel.set_workers(args.threads)
     t0 = time.perf_counter()
     if not compiled.load():
         raise SystemExit(f"compiled kernels unavailable: {compiled.why()}")
@@ -73,6 +112,7 @@ def main(argv=None):
     work = {k: passes(s, D) for k, s in steps.items()}
     for k, make in kinds.items():
         work[k]["solve"] = lambda make=make: vp.solve.solve(b, P, axes="XYZ", steps=make)
+    work["compiled"].update(halves(b, D))
     times = {f"{what}_{k}": [] for k in kinds for what in work[k]}
     for _ in range(args.rounds):
         for k in kinds:

@@ -405,12 +405,13 @@ def test_the_compiled_topology_is_numpys(kernels):
     assert [vp.Topology(t, nv).is_closed for t, nv in cases] == [True, False, False, False, True, True, True]
 
 
-@pytest.mark.parametrize("case", ["closed", "open", "doubled", "degenerate", "shared vertex", "shuffled"])
+@pytest.mark.parametrize("case", ["closed", "open", "doubled", "degenerate", "shared vertex", "shuffled", "cone"])
 def test_the_compiled_gradient_around_rings_and_pairs_is_numpys(kernels, case):
     # The gradient passes sum around a ring of neighbours where a vertex's faces close one fan and
     # face by face elsewhere (`solve_kernels.vertex_rings`): open fans, a face doubled, a
-    # degenerate face, two bodies sharing a vertex, the faces in any order; every axis and the
-    # three at once against NumPy's face-wise gradient, in float64.
+    # degenerate face, two bodies sharing a vertex, the faces in any order, a cone whose apex has
+    # more faces than a ring takes; every axis and the three at once against NumPy's face-wise
+    # gradient, in float64.
     rng = np.random.default_rng(5)
     v, f = vp.icosphere(3, 0.5)
     v2, f2 = vp.icosphere(1, 0.2)
@@ -419,13 +420,21 @@ def test_the_compiled_gradient_around_rings_and_pairs_is_numpys(kernels, case):
     tris = {"closed": base, "open": base[7:], "doubled": np.vstack([base, base[:1]]),
             "degenerate": np.vstack([base, [[3, 3, 9]]]),
             "shared vertex": np.vstack([f, np.where(f2 == 0, 0, f2 + len(v))]),
-            "shuffled": base[rng.permutation(len(base))]}[case]
+            "shuffled": base[rng.permutation(len(base))]}.get(case)
     if case == "shared vertex":
         verts = np.vstack([v, v2 + v[0] * 1.4])
+    if case == "cone":
+        m = 100                                 # apex 0, base centre 1, rim 2 .. m + 1
+        a = 2 * np.pi * np.arange(m) / m
+        verts = np.vstack([[0, 0, 0.5], [0, 0, -0.3], np.stack([0.4 * np.cos(a), 0.4 * np.sin(a), -0.3 + 0 * a], 1)])
+        rim, nxt = 2 + np.arange(m), 2 + (np.arange(m) + 1) % m
+        tris = np.vstack([np.stack([0 * rim, rim, nxt], 1), np.stack([1 + 0 * rim, nxt, rim], 1)])
     lat = vp.Lattice((4, 5, 4), ("BSPLINE", "CARDINAL", "LINEAR"), bounds=((-0.8,) * 3, (0.8,) * 3))
     b = vp.bind(lat, verts, tris)
     rings = compiled.incidence(b)[2]
     assert 0 < int(rings.sum()) <= b.n_verts
+    if case == "cone":
+        assert rings[b.slot[0]] == 0 and rings[b.slot[2]] == 1 and int(rings.sum()) == b.n_verts - 2
     if case not in ("closed", "shuffled"):
         assert int(rings.sum()) < len(np.unique(tris))      # (some fans are summed face by face)
     D = lat.rest_points * [1.0, 1.1, 0.8] + rng.normal(0, 0.03, lat.rest_points.shape) - lat.rest_points

@@ -505,6 +505,10 @@ def vertex_incidence(tris_t, start, pairs):
             pos[a] = p + 1
 
 
+#: Fans of more faces than this keep their pairs (`vertex_rings`).
+RING_MOST = 64
+
+
 def vertex_rings(start_v, pairs_v, rstart, entries, ring):
     # The faces around every vertex (`vertex_incidence`) as the gradient passes read them: where
     # they form one closed fan, its ring of d neighbours (ring[v] = 1; face k is (v, r_k, r_k+1),
@@ -514,17 +518,14 @@ def vertex_rings(start_v, pairs_v, rstart, entries, ring):
     # faces only and must come back to its first neighbour after all d: then the ring's terms are
     # the faces' terms, each once, whatever the fan's shape.
     n = start_v.shape[0] - 1
-    most = 0
-    for v in range(n):
-        most = max(most, start_v[v + 1] - start_v[v])
-    used = np.zeros(most, np.bool_)
+    used = np.zeros(RING_MOST, np.bool_)
     o = 0
     for v in range(n):
         s0 = start_v[v]
         s1 = start_v[v + 1]
         d = s1 - s0
         rstart[v] = o
-        ok = d >= 3
+        ok = 3 <= d <= RING_MOST      # (the walk costs d^2: a cone's apex of thousands keeps pairs)
         if ok:
             for k in range(d):
                 used[k] = False

@@ -24,7 +24,7 @@ NODE_GROUP_NAME = "VP-FFD"
 GROUP_TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
 
 
-GROUP_VERSION = 7                 # the tag's value: groups of older versions are rebuilt
+GROUP_VERSION = 8                 # the tag's value: groups of older versions are rebuilt
 
 
 _KIND = "vpffd_tap_kind"     # how the group's tap is made: "INSTANCES" or "POINTS"
@@ -66,8 +66,9 @@ SLOT_ATTRIBUTE = "vpffd_slot"
 
 
 # The tap of Blender 4.4+ packs PACK vertices into every instance (making an instance costs far
-# more than a value stored on it): vertex PACK * i + k of the slot is instance i's vpffd_co{k} and
-# vpffd_w{k}; every instance also carries the slot's vertex count.
+# more than a value stored on it): of n = ceil(V / PACK) instances, vertex k * n + i of the slot is
+# instance i's vpffd_co{k} and vpffd_w{k} (so that each attribute read is a contiguous run of the
+# vertices); every instance also carries the slot's vertex count.
 PACK = 8
 
 
@@ -176,10 +177,11 @@ def _vertex_tap(N, link, mesh, weight, slot, kind):
                         _sampled(N, link, mesh, "FLOAT", weight)).outputs[0]
         tapped = _store(N, link, tapped, "INT", "POINT", SLOT_ATTRIBUTE, slot).outputs[0]
         return points, _store(N, link, tapped, "BOOLEAN", "POINT", TAP_ATTRIBUTE, True)
-    link(_int_math(N, link, "DIVIDE_CEIL", count, PACK), points.inputs["Count"])
+    n = _int_math(N, link, "DIVIDE_CEIL", count, PACK)
+    link(n, points.inputs["Count"])
     tapped = _store(N, link, points.outputs[0], "INT", "POINT", COUNT_ATTRIBUTE, count).outputs[0]
     for k in range(PACK):
-        index = _int_math(N, link, "MULTIPLY_ADD", N.new("GeometryNodeInputIndex").outputs[0], PACK, k)
+        index = _int_math(N, link, "MULTIPLY_ADD", n, k, N.new("GeometryNodeInputIndex").outputs[0])
         tapped = _store(N, link, tapped, "FLOAT_VECTOR", "POINT", PACKED_POSITIONS[k],
                         _sampled(N, link, mesh, "FLOAT_VECTOR", position, index)).outputs[0]
         tapped = _store(N, link, tapped, "FLOAT", "POINT", PACKED_WEIGHTS[k],

@@ -60,8 +60,8 @@ def _packed_tap(attrs, n, slot):
     V = int(counts[is_tap][0])
     if not 0 <= V <= m * PACK:
         return None
-    # Straight into (PACK, n, ...) buffers, then one transposed copy: vertex PACK * i + k is
-    # row i of layer k.
+    # Straight into (PACK, n, ...) buffers: vertex k * n + i is row i of layer k (PACK), so the
+    # layers one after the other are the vertices in order, with no copy.
     vec, val = np.empty((PACK, n, 3), np.float32), np.empty((PACK, n), np.float32)
     for k in range(PACK):
         p, q = attrs.get(PACKED_POSITIONS[k]), attrs.get(PACKED_WEIGHTS[k])
@@ -71,9 +71,7 @@ def _packed_tap(attrs, n, slot):
         q.data.foreach_get("value", val[k])
     if m < n:           # the face tap, or instances that a later modifier joined
         vec, val = vec[:, is_tap], val[:, is_tap]
-    co = vec.transpose(1, 0, 2).reshape(-1, 3)
-    w = val.T.reshape(-1)
-    return is_tap, co[:V], w[:V]
+    return is_tap, vec.reshape(-1, 3)[:V], val.reshape(-1)[:V]
 
 
 def read_tap(ob_eval, depsgraph, slot=None):

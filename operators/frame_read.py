@@ -39,7 +39,8 @@ def read(d, state, depsgraph, helpers_taken):
     # object, and Blender 4.4+ then refuses to hand out its evaluated geometry.
     ob_eval = obj.evaluated_get(depsgraph)
     slot = node_group.get_input(mod, node_group.SLOT_INPUT)
-    tap = read_tap(ob_eval, depsgraph, slot if slot == mod.persistent_uid else None)
+    tap = read_tap(ob_eval, depsgraph, slot if slot == mod.persistent_uid else None,
+                   node_group.packs_by_stride(mod.node_group))
     if tap is not None and slot != mod.persistent_uid and len(modifier.find_all(obj)) > 1:
         tap = None      # the tap of a modifier whose slot input is set below, for the next evaluation
     stale_weights = False

@@ -60,6 +60,11 @@ CORNER_ATTRIBUTES = ("vpffd_c0", "vpffd_c1", "vpffd_c2")   # a triangle's vertex
 WEIGHT_ATTRIBUTE = "vpffd_weight"
 
 
+# The point tap's positions also as a plain attribute (version 8): a later modifier that moves the
+# points (a Transform of copies it joins) leaves it as it was, as it leaves the packed instance tap.
+POINT_POSITION = "vpffd_position"
+
+
 # Which VP-FFD modifier made a tap element: a mesh may have several, and the taps of earlier ones
 # pass through the later ones to the end of the stack beside theirs.
 SLOT_ATTRIBUTE = "vpffd_slot"
@@ -158,7 +163,8 @@ def _vertex_tap(N, link, mesh, weight, slot, kind):
     socket `slot`). Made with a Points node that
     samples the mesh by index, not Mesh to Points, which copies every attribute of the mesh
     (7-14 ms per evaluation at 163,842 vertices against about 1 ms).
-    - kind "POINTS": one point per vertex at its position, the weight as WEIGHT_ATTRIBUTE.
+    - kind "POINTS": one point per vertex at its position (also as POINT_POSITION), the weight as
+      WEIGHT_ATTRIBUTE and the vertex count (COUNT_ATTRIBUTE).
     - kind "INSTANCES": instances of nothing, each carrying PACK vertices (PACKED_POSITIONS,
       PACKED_WEIGHTS) and the vertex count (COUNT_ATTRIBUTE): an instance per vertex cost about
       5 ms per evaluation more.
@@ -175,6 +181,9 @@ def _vertex_tap(N, link, mesh, weight, slot, kind):
         link(_sampled(N, link, mesh, "FLOAT_VECTOR", position), points.inputs["Position"])
         tapped = _store(N, link, points.outputs[0], "FLOAT", "POINT", WEIGHT_ATTRIBUTE,
                         _sampled(N, link, mesh, "FLOAT", weight)).outputs[0]
+        tapped = _store(N, link, tapped, "INT", "POINT", COUNT_ATTRIBUTE, count).outputs[0]
+        tapped = _store(N, link, tapped, "FLOAT_VECTOR", "POINT", POINT_POSITION,
+                        N.new("GeometryNodeInputPosition").outputs[0]).outputs[0]
         tapped = _store(N, link, tapped, "INT", "POINT", SLOT_ATTRIBUTE, slot).outputs[0]
         return points, _store(N, link, tapped, "BOOLEAN", "POINT", TAP_ATTRIBUTE, True)
     n = _int_math(N, link, "DIVIDE_CEIL", count, PACK)
@@ -334,6 +343,12 @@ def hide_inputs(ng):
 
 def is_current(ng):
     return ng.get(GROUP_TAG) == GROUP_VERSION and ng.get(_KIND) == tap_kind()
+
+
+def packs_by_stride(ng):
+    """Whether group `ng` packs the instance tap with vertex k * n + i on instance i (version 8
+    and newer); older groups put vertex PACK * i + k there. A linked group is not rebuilt."""
+    return ng is None or (ng.get(GROUP_TAG) or 0) >= 8
 
 
 def _rebuild(ng):

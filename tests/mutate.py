@@ -52,8 +52,8 @@ MUTATIONS = {
         ["tests/test_core_compiled.py"], {}),
     "compiled-forward-axis": (
         "vpffd_addon/solve_kernels.py",
-        "                    t += A[(k * 4 + j) * 4 + p] * c[1, j, q]",
-        "                    t += A[(k * 4 + j) * 4 + p] * c[0, j, q]",
+        "                    t += A[(k * 4 + j) * 4 + p] * np.float64(c[1, j, q])",
+        "                    t += A[(k * 4 + j) * 4 + p] * np.float64(c[0, j, q])",
         ["tests/test_core_compiled.py"], {}),
     "compiled-ring-unclosed": (
         "vpffd_addon/solve_kernels.py",
@@ -65,6 +65,11 @@ MUTATIONS = {
         "                    if pairs_v[2 * e] == nxt and not used[e - s0]:",
         "                    if pairs_v[2 * e] == nxt:",
         ["tests/test_core_compiled.py", "-k", "rings_and_pairs"], {}),
+    "tap-copies-read": (
+        "operators/tap.py",
+        "        own = marked[:m]\n",
+        "        own = marked\n",
+        ["tests/test_stack_blender.py", "-k", "copied_after"], {}),
     "compiled-bind-influence": (
         "vpffd_addon/layout_kernels.py",
         "            params[3, sl] = s[v]",

@@ -110,12 +110,34 @@ def _before(ob, kind):
         ob.modifiers.new("Before", "LATTICE").object = _second_lattice()
 
 
+def _copy_beside():
+    """A Geometry Nodes group that joins its geometry with a copy of it moved aside (a mirror or
+    array rig does much the same): after the slot it copies VP-FFD's tap too, after the slot's own."""
+    ng = bpy.data.node_groups.get("Copy Beside")
+    if ng is None:
+        ng = bpy.data.node_groups.new("Copy Beside", "GeometryNodeTree")
+        ng.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+        ng.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+        gin, gout = ng.nodes.new("NodeGroupInput"), ng.nodes.new("NodeGroupOutput")
+        move = ng.nodes.new("GeometryNodeTransform")
+        move.inputs["Translation"].default_value = (3.0, 0.0, 0.0)
+        join = ng.nodes.new("GeometryNodeJoinGeometry")
+        ng.links.new(gin.outputs[0], move.inputs["Geometry"])
+        ng.links.new(gin.outputs[0], join.inputs[0])
+        ng.links.new(move.outputs[0], join.inputs[0])
+        ng.links.new(join.outputs[0], gout.inputs[0])
+    return ng
+
+
 def _after(ob, kind):
     if kind == "subsurf_after":
         ob.modifiers.new("Subdivision After", "SUBSURF").levels = 1
+    if kind == "copied_after":
+        ob.modifiers.new("Copy Beside", "NODES").node_group = _copy_beside()
 
 
-KINDS = ("armature", "shape_keys", "subsurf_before", "simple_deform", "lattice_before", "subsurf_after")
+KINDS = ("armature", "shape_keys", "subsurf_before", "simple_deform", "lattice_before", "subsurf_after",
+         "copied_after")
 
 
 def _vpffd_object(kind, lattice, **settings):

@@ -35,7 +35,9 @@ class BindingBase:
     `n_outside` (vertices outside the lattice's box or the cage's region), `nbytes`.
 
     Set on a lattice binding by the compiled steps on first use (absent until then; `compiled`):
-    `incidence` (start (n_slots + 1,) int64, pairs (6 F,) int32), the faces around every slot;
+    `incidence` (start (n_slots + 1,) int64, entries int32, ring (n_slots,) int8), the faces
+    around every slot as rings of neighbours where they close a fan, as pairs elsewhere
+    (`solve_kernels.vertex_rings`);
     `vertex_rows` (V,) int64, the row of `island_origin` of every vertex; `converted` (dtype,
     params (4, n_slots), x0 (3, n_slots)), the binding's values in another precision.
     """
@@ -358,11 +360,11 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     return b
 
 
-def _lattice_taps(lattice, verts, kernels, threads=True):
+def _lattice_taps(lattice, verts, kernels):
     """The taps of the three axes (`bases.axis_taps`): (first (V,), w (V, K)) and, for a local
     axis, also its unclamped cell (V,) and t (V,) (`bases.axis_cells`). With `kernels` (every
     axis is then local) only the cells and t, by the compiled kernel. On the worker threads for a
-    big mesh unless `threads` is False (when called from one of them)."""
+    big mesh."""
     V = len(verts)
     if kernels:
         # The compiled solve computes the weights itself: only the cells and t (`first` and the
@@ -379,7 +381,7 @@ def _lattice_taps(lattice, verts, kernels, threads=True):
         return (first, w) + axis_cells(cols[a], n, lo, hi)
     # The three axes are independent and NumPy and the kernels release the GIL: big meshes use
     # the worker threads.
-    if threads and V >= parallel.MIN_VERTS_PER_PART:
+    if V >= parallel.MIN_VERTS_PER_PART:
         return parallel.run(taps_of, [0, 1, 2])
     return [taps_of(a) for a in range(3)]
 

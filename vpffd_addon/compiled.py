@@ -465,14 +465,15 @@ def vertex_rings(topology):
     if got is None:
         K = _state["kernels"]
         around = getattr(topology, "_vertex_incidence", None)
-        if around is None:
+        if around is None:          # (a NumPy topology, or one whose rings were made and dropped)
             start_v = np.zeros(topology.n_verts + 1, np.int64)
             pairs_v = np.empty(6 * len(topology.tris), np.int32)
             K["vertex_incidence"](topology.tris_t, start_v, pairs_v)
             around = topology._vertex_incidence = (start_v, pairs_v)
         rstart, entries, ring = np.empty(topology.n_verts + 1, np.int64), np.empty_like(around[1]), np.empty(topology.n_verts, np.int8)
         K["vertex_rings"](*around, rstart, entries, ring)
-        got = topology._vertex_rings = (rstart, entries[:rstart[-1]], ring)
+        got = topology._vertex_rings = (rstart, entries[:rstart[-1]].copy(), ring)
+        topology._vertex_incidence = None      # (read by nothing once the rings are made)
     return got
 
 

@@ -3,8 +3,9 @@ compiled solve's per-slot parameters, the influence, the rest coordinates) and t
 terms (docs/performance.md, "Re-embedding").
 
 A mesh that moves through the lattice is embedded anew on every frame, so these passes are
-per-frame work. Each kernel is one serial loop that writes its output in place and computes every
-value with the same operations, in the same order and precision, as the NumPy code in
+per-frame work. The per-vertex, per-slot and per-face kernels loop over a range of their elements
+(`layout.py` hands every worker thread its part); each kernel writes its output in place and
+computes every value with the same operations, in the same order and precision, as the NumPy code in
 `bases.axis_cells`, `binding.bind_lattice`, `binding.slot_faces` and `volume.face_volumes`: a binding
 made with them is bit for bit the one NumPy makes (the tests compare every array).
 

@@ -93,20 +93,20 @@ def cell_polynomial(D, comp, idx, c, A, B, C):
         for p in range(4):
             t = 0.0
             for i in range(4):
-                t += D[comp, idx[kj * 4 + i]] * c[0, i, p]
+                t += np.float64(D[comp, idx[kj * 4 + i]]) * np.float64(c[0, i, p])
             A[kj * 4 + p] = t
     for k in range(4):
         for q in range(4):
             for p in range(4):
                 t = 0.0
                 for j in range(4):
-                    t += A[(k * 4 + j) * 4 + p] * c[1, j, q]
+                    t += A[(k * 4 + j) * 4 + p] * np.float64(c[1, j, q])
                 B[(k * 4 + q) * 4 + p] = t
     for r in range(4):
         for qp in range(16):
             t = 0.0
             for k in range(4):
-                t += B[k * 16 + qp] * c[2, k, r]
+                t += B[k * 16 + qp] * np.float64(c[2, k, r])
             C[r * 16 + qp] = t
 
 

@@ -84,30 +84,32 @@ def taps(cell, shape, out):
                 q += 1
 
 
+def change_basis(src, c, a, transposed, dst):
+    # One axis of a block's 4 x 4 x 4 tensor (index (w * 4 + v) * 4 + u; a = 0 for u, 1 for v,
+    # 2 for w) through axis a's cubics c[a] (`constants`): dst[.., x, ..] = sum_y src[.., y, ..]
+    # c[a, y, x], from the values at the four taps to the coefficients of the powers of t, or
+    # with c[a, x, y] (`transposed`) from moments back to the taps. In float64.
+    stride = 1 if a == 0 else (4 if a == 1 else 16)
+    for hi in range(0, 64, 4 * stride):
+        for x in range(4):
+            for lo in range(stride):
+                t = 0.0
+                for y in range(4):
+                    w = c[a, x, y] if transposed else c[a, y, x]
+                    t += src[hi + y * stride + lo] * np.float64(w)
+                dst[hi + x * stride + lo] = t
+
+
 def cell_polynomial(D, comp, idx, c, A, B, C):
     # The deformation of component comp within one cell as a tricubic polynomial: C (64,) its
     # coefficients, C[(r * 4 + q) * 4 + p] of u^p v^q w^r, from the cell's 64 control points
     # D[comp, idx] and the axes' weights as cubics in t (c: `constants`), one axis at a time
     # (A, B (64,) float64 scratch): sum_kji D[k, j, i] w_i(u) w_j(v) w_k(w).
-    for kj in range(16):
-        for p in range(4):
-            t = 0.0
-            for i in range(4):
-                t += np.float64(D[comp, idx[kj * 4 + i]]) * np.float64(c[0, i, p])
-            A[kj * 4 + p] = t
-    for k in range(4):
-        for q in range(4):
-            for p in range(4):
-                t = 0.0
-                for j in range(4):
-                    t += A[(k * 4 + j) * 4 + p] * np.float64(c[1, j, q])
-                B[(k * 4 + q) * 4 + p] = t
-    for r in range(4):
-        for qp in range(16):
-            t = 0.0
-            for k in range(4):
-                t += B[k * 16 + qp] * np.float64(c[2, k, r])
-            C[r * 16 + qp] = t
+    for q in range(64):
+        C[q] = np.float64(D[comp, idx[q]])
+    change_basis(C, c, 0, False, A)
+    change_basis(A, c, 1, False, B)
+    change_basis(B, c, 2, False, C)
 
 
 def forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1):
@@ -209,25 +211,9 @@ def block_transpose(gs, bs, c, pu, pv, pw, h, M, A, B, T):
             M[o + 1] = a1
             M[o + 2] = a2
             M[o + 3] = a3
-    for rq in range(16):
-        for i in range(4):
-            t = 0.0
-            for p in range(4):
-                t += c[0, i, p] * M[rq * 4 + p]
-            A[rq * 4 + i] = t
-    for r in range(4):
-        for j in range(4):
-            for i in range(4):
-                t = 0.0
-                for q in range(4):
-                    t += c[1, j, q] * A[(r * 4 + q) * 4 + i]
-                B[(r * 4 + j) * 4 + i] = t
-    for k in range(4):
-        for ji in range(16):
-            t = 0.0
-            for r in range(4):
-                t += c[2, k, r] * B[r * 16 + ji]
-            T[k * 16 + ji] = t
+    change_basis(M, c, 0, True, A)
+    change_basis(A, c, 1, True, B)
+    change_basis(B, c, 2, True, T)
 
 
 def fan_gradient(xp, xq, inc_start, inc, ring, v):
@@ -588,8 +574,8 @@ def to_verts(X, slot, origin, vertex_row, out, v0, v1):
             out[v, c] = np.float64(X[c, sl]) + origin[row, c]
 
 
-_HELPERS = ("same_cell", "taps", "block_powers", "block_transpose", "triangular_solve", "fan_gradient",
-            "cell_polynomial")
+_HELPERS = ("same_cell", "taps", "change_basis", "block_powers", "block_transpose", "triangular_solve",
+            "fan_gradient", "cell_polynomial")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
             "reduce_blocks": "njit", "householder": "njit_sums", "apply_q": "njit_sums",
             "condition": "njit", "triangular_solve": "njit",

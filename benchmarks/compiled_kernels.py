@@ -13,10 +13,13 @@ An icosphere (163,842 vertices at 7 subdivisions, radius 0.45) in a B-spline lat
 - `verts`: the deformed vertices from the slots;
 - `solve`: a whole XYZ solve;
 - `gathers` and `moments` (compiled only): the gradient pass's two halves apart, the gradient
-  around every slot's faces and, per block, the moments and transposed entries;
+  around every slot's faces and, per block, the moments of g s (the transposed entries are made from them in `reduce_blocks`, once per run);
 
 for the NumPy steps and the compiled ones, the bytes each pass reads and writes per slot, the
-time `compiled.load()` took, and how far the two solves' vertices are apart (in lattice sizes).
+time `compiled.load()` took, how far the two solves' vertices are apart (in lattice sizes), and
+what this machine does at best on one thread in the loops the passes are made of (`floor`:
+multiply-adds a nanosecond, a gathered neighbour's cost), from which docs/performance.md works out
+each pass's floor.
 """
 import argparse
 import json
@@ -60,15 +63,14 @@ def halves(b, D):
     """{"gathers": callable, "moments": callable}: the compiled gradient pass's two halves, each
     as a kernel of its own (compiled here, from the solve's own helpers) over every block on the
     worker threads: the gradient around the faces of every slot along x, and per block the
-    moments of g and the transposed entries."""
+    moments of g s."""
     import numba
     fast = numba.njit(nogil=True, fastmath={"reassoc", "contract"}, error_model="numpy")
     steps = compiled.CompiledSteps(b)
     steps.refresh((0, 1, 2), D)
     start, inc, ring = compiled.incidence(b)
     n_blocks = b.block_cell.shape[0]
-    g, T = np.empty(b.x0.shape[1]), np.empty((n_blocks, 64))
-    coef = steps.coef
+    g, M = np.empty(b.x0.shape[1]), np.empty((n_blocks, 64))
 
     @fast
     def gathers(xp, xq, start, inc, ring, g, b0, b1):
@@ -77,17 +79,64 @@ def halves(b, D):
             g[v] = solve_kernels.fan_gradient(xp, xq, start, inc, ring, v) * (1.0 / 6.0)
 
     @fast
-    def moments(params, c, g, T, b0, b1):
-        bs = g.shape[0] // T.shape[0]
+    def moments(params, g, M, b0, b1):
+        bs = g.shape[0] // M.shape[0]
         pu, pv, pw = np.empty((4, bs)), np.empty((4, bs)), np.empty((4, bs))
-        M, A, B, h = np.empty(64), np.empty(64), np.empty(64), np.empty(bs)
+        h = np.empty(bs)
         for bl in range(b0, b1):
             solve_kernels.block_powers(params, bl * bs, bs, pu, pv, pw)
-            solve_kernels.block_transpose(g[bl * bs:(bl + 1) * bs], bs, c, pu, pv, pw, h, M, A, B, T[bl])
+            solve_kernels.block_moments(g[bl * bs:(bl + 1) * bs], bs, pu, pv, pw, h, M[bl])
     parts = b.block_parts
     X = steps.X
     return {"gathers": lambda: parallel.run(lambda p: gathers(X[1], X[2], start, inc, ring, g, p.start, p.stop), parts),
-            "moments": lambda: parallel.run(lambda p: moments(steps.params, coef, g, T, p.start, p.stop), parts)}
+            "moments": lambda: parallel.run(lambda p: moments(steps.params, g, M, p.start, p.stop), parts)}
+
+
+def floor(b):
+    """What this machine does at best, on one thread, in the loops the passes are made of (compiled
+    here): {"fma_per_ns_f32", "fma_per_ns_f64": multiply-adds a nanosecond in a vectorised Horner
+    loop over 4,096 values (in cache), 16 deep, as the forward's evaluation and the moments are;
+    "ns_per_gather": a slot's ring of neighbours gathered (both coordinates of each, summed, no
+    products) per neighbour, the gradient pass's own index pattern}. A pass's floor is then the
+    larger of its arithmetic and its gathers at these rates and its bytes at the memory's."""
+    import numba
+    fast = numba.njit(nogil=True, fastmath={"reassoc", "contract"}, error_model="numpy")
+
+    @fast
+    def horner(x, k, out, reps):
+        for _ in range(reps):
+            for s in range(x.shape[0]):
+                u = x[s]
+                acc = k[0]
+                for j in range(1, 17):
+                    acc = acc * u + k[j]
+                out[s] += acc
+
+    @fast
+    def gathers(xp, xq, start, inc, out):
+        for v in range(start.shape[0] - 1):
+            acc = 0.0
+            for e in range(start[v], start[v + 1]):
+                n = inc[e]
+                acc += xp[n] + xq[n]
+            out[v] = acc
+
+    report = {}
+    for dtype, name in ((np.float32, "fma_per_ns_f32"), (np.float64, "fma_per_ns_f64")):
+        x = np.linspace(0.1, 0.9, 4096).astype(dtype)
+        k = np.linspace(-1.0, 1.0, 17).astype(dtype)
+        out = np.zeros(4096, dtype)
+        horner(x, k, out, 1)
+        reps = 200
+        t = min(_ms(lambda: horner(x, k, out, reps)) for _ in range(5))
+        report[name] = round(16 * 4096 * reps / (t * 1e6), 2)
+    steps = compiled.CompiledSteps(b)
+    start, inc, _ring = compiled.incidence(b)
+    out = np.empty(b.x0.shape[1])
+    gathers(steps.X[1], steps.X[2], start, inc, out)
+    t = min(_ms(lambda: gathers(steps.X[1], steps.X[2], start, inc, out)) for _ in range(9))
+    report["ns_per_gather"] = round(t * 1e6 / len(inc), 3)
+    return report
 
 
 def main(argv=None):
@@ -135,6 +184,7 @@ def main(argv=None):
               "ring_slots": int(ring.sum()),
               "numpy_bytes_per_slot": {"forward": 80 + 8, "transpose": 80 + 8}}
     report.update({k: round(float(np.median(v)), 2) for k, v in times.items()})
+    report["machine_one_thread"] = floor(b)
     print(json.dumps(report, indent=1))
 
 

@@ -50,6 +50,11 @@ MUTATIONS = {
         "    change_basis(A, c, 1, True, B)\n",
         "    change_basis(A, c, 0, True, B)\n",
         ["tests/test_core_compiled.py"], {}),
+    "moments-run-rows": (
+        "vpffd_addon/solve_kernels.py",
+        "        if (bl + 1 < n_blocks and block_row[bl + 1] == block_row[bl]\n",
+        "        if (bl + 1 < n_blocks\n",
+        ["tests/test_core_compiled.py"], {}),
     "compiled-forward-axis": (
         "vpffd_addon/solve_kernels.py",
         "    change_basis(A, c, 1, False, B)\n",

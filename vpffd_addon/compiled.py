@@ -229,21 +229,21 @@ def _smoke_solve(kernels, dtype):
         if int(ring.sum()) != n_rings:
             raise RuntimeError("the faces around the vertices were not made rings where they close")
         for xp, xq in ((X[1], X[2]), (X[1].astype(float), X[2].astype(float))):
-            g, T, sums = np.empty(4), np.empty((1, 64)), np.empty((2, 1))
-            kernels["gradient_transpose"](xp, xq, start, entries, ring, params, coef, x0[0], g, T, sums, 0, 1)
+            g, M, sums = np.empty(4), np.empty((1, 64)), np.empty((2, 1))
+            kernels["gradient_transpose"](xp, xq, start, entries, ring, params, x0[0], g, M, sums, 0, 1)
             ref = gradient_component(xp[faces], xq[faces], faces, 4)
             alpha = np.zeros((1, 64))
-            kernels["reduce_blocks"](T, cell, np.zeros(1, np.int64), shape, alpha)
+            kernels["reduce_blocks"](M, cell, np.zeros(1, np.int64), shape, coef, alpha)
             if not (np.allclose(g, ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[0, 0], x0[0].astype(float) @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
                 raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
-        g, T, sums = np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))
-        kernels["gradient_transpose3"](X, start, entries, ring, params, coef, x0, g, T, sums, 0, 1)
+        g, M, sums = np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))
+        kernels["gradient_transpose3"](X, start, entries, ring, params, x0, g, M, sums, 0, 1)
         for a in range(3):
             ref = gradient_component(X[(a + 1) % 3][faces], X[(a + 2) % 3][faces], faces, 4)
             alpha = np.zeros((1, 64))
-            kernels["reduce_blocks"](T[a], cell, np.zeros(1, np.int64), shape, alpha)
+            kernels["reduce_blocks"](M[a], cell, np.zeros(1, np.int64), shape, coef, alpha)
             if not (np.allclose(g[a], ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[a, 0, 0], x0[a].astype(float) @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[a, 1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
@@ -285,12 +285,13 @@ def _smoke_solve(kernels, dtype):
 
 
 class _Gradient:
-    """What one pass of `gradient_transpose` leaves: g (n_slots,) float64 and, per block, its piece
-    of (S B)^T g (n_blocks, 64) and the sums x0_a . g and |s g| (2, n_blocks)."""
+    """What one pass of `gradient_transpose` leaves: g (n_slots,) float64 and, per block, its
+    moments of g s (n_blocks, 64), whose sum `reduce_blocks` turns into (S B)^T g, and the sums
+    x0_a . g and |s g| (2, n_blocks)."""
 
     def __init__(self, n_slots, n_blocks):
         self.g = np.empty(n_slots)
-        self.T = np.empty((n_blocks, 64))
+        self.M = np.empty((n_blocks, 64))
         self.sums = np.empty((2, n_blocks))
 
 
@@ -350,8 +351,8 @@ class CompiledSteps(Steps):
         b, K = self.b, self.K
         start, inc, ring = incidence(b)
         out = _Gradient(b.x0.shape[1], self.n_blocks)
-        self._blocks(lambda b0, b1: K["gradient_transpose"](xp, xq, start, inc, ring, self.params, self.coef,
-                                                            x0a, out.g, out.T, out.sums, b0, b1))
+        self._blocks(lambda b0, b1: K["gradient_transpose"](xp, xq, start, inc, ring, self.params,
+                                                            x0a, out.g, out.M, out.sums, b0, b1))
         return out
 
     def axis_gradient(self, axis, D):
@@ -366,13 +367,13 @@ class CompiledSteps(Steps):
         self.refresh((0, 1, 2), D)
         start, inc, ring = incidence(b)
         n_slots = b.x0.shape[1]
-        g, T, sums = np.empty((3, n_slots)), np.empty((3, self.n_blocks, 64)), np.empty((3, 2, self.n_blocks))
-        self._blocks(lambda b0, b1: K["gradient_transpose3"](self.X, start, inc, ring, self.params, self.coef,
-                                                             self.x0, g, T, sums, b0, b1))
+        g, M, sums = np.empty((3, n_slots)), np.empty((3, self.n_blocks, 64)), np.empty((3, 2, self.n_blocks))
+        self._blocks(lambda b0, b1: K["gradient_transpose3"](self.X, start, inc, ring, self.params,
+                                                             self.x0, g, M, sums, b0, b1))
         out = []
         for a in range(3):
             one = _Gradient.__new__(_Gradient)
-            one.g, one.T, one.sums = g[a], T[a], sums[a]
+            one.g, one.M, one.sums = g[a], M[a], sums[a]
             out.append(one)
         return tuple(out)
 
@@ -406,7 +407,7 @@ class CompiledSteps(Steps):
         b = self.b
         alpha = np.zeros((k, b.lattice.n_points))
         row = np.zeros(self.n_blocks, np.int64) if rows is None else b.block_island
-        self.K["reduce_blocks"](g.T, b.block_cell, row, self.shape, alpha)
+        self.K["reduce_blocks"](g.M, b.block_cell, row, self.shape, self.coef, alpha)
         return alpha
 
     def add_along(self, e, t):

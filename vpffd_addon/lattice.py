@@ -84,10 +84,16 @@ class Lattice(Bounded):
 
     @property
     def rest_points(self):
-        """(N, 3) rest grid, u fastest, then v, then w (Blender's point order)."""
-        cu, cv, cw = (self.axis_coords(a) for a in range(3))
-        w, v, u = np.meshgrid(cw, cv, cu, indexing="ij")
-        return np.stack([u.ravel(), v.ravel(), w.ravel()], 1)
+        """(N, 3) rest grid, u fastest, then v, then w (Blender's point order); read-only, made
+        once per lattice (a solve asks for it several times: docs/performance.md)."""
+        got = self.__dict__.get("_rest_points")
+        if got is None:
+            cu, cv, cw = (self.axis_coords(a) for a in range(3))
+            w, v, u = np.meshgrid(cw, cv, cu, indexing="ij")
+            got = np.stack([u.ravel(), v.ravel(), w.ravel()], 1)
+            got.flags.writeable = False
+            self._rest_points = got
+        return got
 
     def outside_count(self, verts):
         """How many of `verts` (V, 3) (lattice space) lie outside the lattice's box, beyond a

@@ -13,10 +13,10 @@ with no stored weights:
   rule, with no basis weights per slot;
 - `gradient_transpose`: per slot, the gradient from the faces around it (a vertex-centred sum
   around a ring of neighbours where they close a fan: no scatter, no per-thread copies of g), and
-  per block the 64 entries of (S B)^T g (the block's moments of g in the cell coordinates, turned
-  into the control points' entries by the same cubics) and the two sums. They are kept per block
-  and added up in block order (`reduce_blocks`), so a result is the same whatever the number of
-  threads.
+  per block the two sums and the block's 64 moments of g s in the cell coordinates;
+  `reduce_blocks` adds the moments up in block order, a run of blocks in one cell at a time, and
+  turns each run's into the entries of (S B)^T g at the cell's control points by the same cubics.
+  So a result is the same whatever the number of threads.
 
 Blender's taps i-1..i+2 are clamped to the grid: a block gathers its control points at the clamped
 indices (repeating the end points) instead of folding the weights, which is the same sum. Every
@@ -187,11 +187,12 @@ def block_powers(params, base, bs, pu, pv, pw):
         pw[3, s] = si * w * w * w
 
 
-def block_transpose(gs, bs, c, pu, pv, pw, h, M, A, B, T):
-    # T (64,) = the block's piece of (S B)^T g, g = gs (bs,), from the powers of `block_powers`:
-    # the moments M[r, q, p] = sum_s g s w^r v^q u^p, then T[k, j, i] = sum_pqr c[0, i, p]
-    # c[1, j, q] c[2, k, r] M[r, q, p] (c: `constants`), one axis at a time (A, B scratch):
-    # the transpose of `cell_polynomial` and the forward's evaluation, with no weights per slot.
+def block_moments(gs, bs, pu, pv, pw, h, M):
+    # M (64,) = the block's moments of g s in its cell coordinates, M[(r * 4 + q) * 4 + p] =
+    # sum_s g s w^r v^q u^p, g = gs (bs,), from the powers of `block_powers` (h (bs,) scratch):
+    # what the block gives (S B)^T g, turned into the control points' entries by `reduce_blocks`
+    # once per run of blocks in one cell (the change of basis is linear, so the moments of a run
+    # add up first).
     for r in range(4):
         for s in range(bs):
             h[s] = gs[s] * pw[r, s]
@@ -211,9 +212,6 @@ def block_transpose(gs, bs, c, pu, pv, pw, h, M, A, B, T):
             M[o + 1] = a1
             M[o + 2] = a2
             M[o + 3] = a3
-    change_basis(M, c, 0, True, A)
-    change_basis(A, c, 1, True, B)
-    change_basis(B, c, 2, True, T)
 
 
 def fan_gradient(xp, xq, inc_start, inc, ring, v):
@@ -247,16 +245,16 @@ def fan_gradient(xp, xq, inc_start, inc, ring, v):
     return acc
 
 
-def gradient_transpose(xp, xq, inc_start, inc, ring, params, c, x0a, g, T, sums, b0, b1):
+def gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, b0, b1):
     # Blocks b0..b1-1: g (n_slots,) float64, the volume gradient along the axis that xp, xq
     # (n_slots,) complete (products in their precision, a product and a difference possibly fused
     # into one rounding, sums in float64; `volume.gradient_component` is the NumPy reference);
-    # per block T[bl] (64,) its piece of (S B)^T g (float64),
-    # sums[0, bl] = x0a . g (when x0a is not empty) and sums[1, bl] = sum |s g|.
-    n_blocks = T.shape[0]
+    # per block M[bl] (64,) its moments of g s (`block_moments`, float64: `reduce_blocks` makes
+    # (S B)^T g of them), sums[0, bl] = x0a . g (when x0a is not empty) and
+    # sums[1, bl] = sum |s g|.
+    n_blocks = M.shape[0]
     bs = g.shape[0] // n_blocks
     pu, pv, pw = np.empty((4, bs)), np.empty((4, bs)), np.empty((4, bs))
-    M, A, B = np.empty(64), np.empty(64), np.empty(64)
     gs = np.empty(bs)
     h = np.empty(bs)
     with_x0 = x0a.shape[0] > 0
@@ -276,18 +274,17 @@ def gradient_transpose(xp, xq, inc_start, inc, ring, params, c, x0a, g, T, sums,
         sums[0, bl] = sx
         sums[1, bl] = sf
         block_powers(params, base, bs, pu, pv, pw)
-        block_transpose(gs, bs, c, pu, pv, pw, h, M, A, B, T[bl])
+        block_moments(gs, bs, pu, pv, pw, h, M[bl])
 
 
-def gradient_transpose3(X, inc_start, inc, ring, params, c, x0, g, T, sums, b0, b1):
+def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1):
     # `gradient_transpose` for the three axes at once, from one gathering of the faces around each
     # slot (the gradient along axis a is component a of the sum of the faces' cross products):
     # for the joint steps, which linearise every axis at the same coordinates X (3, n_slots).
-    # g (3, n_slots), T (3, n_blocks, 64), sums (3, 2, n_blocks); x0 (3, n_slots) always given.
-    n_blocks = T.shape[1]
+    # g (3, n_slots), M (3, n_blocks, 64), sums (3, 2, n_blocks); x0 (3, n_slots) always given.
+    n_blocks = M.shape[1]
     bs = g.shape[1] // n_blocks
     pu, pv, pw = np.empty((4, bs)), np.empty((4, bs)), np.empty((4, bs))
-    M, A, B = np.empty(64), np.empty(64), np.empty(64)
     gs = np.empty((3, bs))
     h = np.empty(bs)
     x = X[0]
@@ -353,18 +350,36 @@ def gradient_transpose3(X, inc_start, inc, ring, params, c, x0, g, T, sums, b0, 
         sums[2, 1, bl] = sf2
         block_powers(params, base, bs, pu, pv, pw)
         for a in range(3):
-            block_transpose(gs[a], bs, c, pu, pv, pw, h, M, A, B, T[a, bl])
+            block_moments(gs[a], bs, pu, pv, pw, h, M[a, bl])
 
 
-def reduce_blocks(T, block_cell, block_row, shape, alpha):
-    # alpha[row] += every block's piece at its control points, in block order.
+def reduce_blocks(M, block_cell, block_row, shape, c, alpha):
+    # alpha[row] += (S B)^T g from every block's moments M (n_blocks, 64) (`block_moments`): the
+    # moments of a run of blocks in one cell and row added up in block order, then turned into
+    # the entries of the cell's control points, T[k, j, i] = sum_pqr c[0, i, p] c[1, j, q]
+    # c[2, k, r] M[r, q, p] (c: `constants`), one axis at a time: the transpose of
+    # `cell_polynomial` and the forward's evaluation. One thread, in block order: the same
+    # result on any number of threads.
     idx = np.empty(64, np.int64)
-    for bl in range(T.shape[0]):
-        if bl == 0 or not same_cell(block_cell, bl - 1, bl):
-            taps(block_cell[bl], shape, idx)
+    acc = np.zeros(64)
+    A = np.empty(64)
+    B = np.empty(64)
+    T = np.empty(64)
+    n_blocks = M.shape[0]
+    for bl in range(n_blocks):
+        for q in range(64):
+            acc[q] += M[bl, q]
+        if (bl + 1 < n_blocks and block_row[bl + 1] == block_row[bl]
+                and same_cell(block_cell, bl, bl + 1)):
+            continue
+        taps(block_cell[bl], shape, idx)
+        change_basis(acc, c, 0, True, A)
+        change_basis(A, c, 1, True, B)
+        change_basis(B, c, 2, True, T)
         row = block_row[bl]
         for q in range(64):
-            alpha[row, idx[q]] += T[bl, q]
+            alpha[row, idx[q]] += T[q]
+            acc[q] = 0.0
 
 
 def householder(M, tau):
@@ -574,7 +589,7 @@ def to_verts(X, slot, origin, vertex_row, out, v0, v1):
             out[v, c] = np.float64(X[c, sl]) + origin[row, c]
 
 
-_HELPERS = ("same_cell", "taps", "change_basis", "block_powers", "block_transpose", "triangular_solve",
+_HELPERS = ("same_cell", "taps", "change_basis", "block_powers", "block_moments", "triangular_solve",
             "fan_gradient", "cell_polynomial")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
             "reduce_blocks": "njit", "householder": "njit_sums", "apply_q": "njit_sums",

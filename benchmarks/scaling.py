@@ -3,10 +3,16 @@
 on 1, 2, ... every core of this machine, against the ideal (the one-thread time divided by the
 threads). The core alone (NumPy, and numba where it is installed), no Blender:
 
-    python -m benchmarks.scaling [--subdivisions 7] [--rounds 7] [--max-threads N]
+    python -m benchmarks.scaling [--subdivisions 7] [--rounds 7] [--max-threads N] [--team-parts K]
+                                 [--passes]
 
 `./dev bench` runs it too and prints the table. Prints JSON on stdout, the table on stderr.
+`--team-parts K` runs the passes on numba's own threads from K parts on (`compiled.TEAM_PARTS`;
+a K above the cores keeps them on the Python worker threads, as before numba's were used);
+`--passes` adds where a solve's time goes on 1, 2, 4, ... threads: each pass, the transposed
+product's reduction (one thread) and the rest (the closed forms, NumPy on one thread).
 """
+import collections
 import argparse
 import json
 import os
@@ -17,6 +23,8 @@ import numpy as np
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if _ROOT not in sys.path:
     sys.path.insert(0, _ROOT)
+
+import time  # noqa: E402
 
 import vpffd_addon as vp  # noqa: E402
 from benchmarks.timing import timed  # noqa: E402
@@ -61,6 +69,62 @@ def run(subdivisions=7, rounds=7, max_threads=None):
     return {"vertices": len(v), "lattice": list(LATTICE), "kernels": kernels, "cores": cores, "rows": rows}
 
 
+def passes(subdivisions=7, rounds=21, threads=None):
+    """{threads: {pass name: ms, "reduce_blocks", "rest", "solve"}}: the mean milliseconds of one
+    XYZ solve's passes (summed over the solve's calls of each), by thread count (default 1, 2, 4,
+    ... and every core)."""
+    v, f = vp.icosphere(subdivisions, 0.45)
+    lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    P = lat.rest_points * [1.0, 1.0, 0.7] + np.random.default_rng(0).normal(0, 0.01, lat.rest_points.shape)
+    topology = vp.Topology(f, len(v))
+    cores = parallel.WORKERS
+    threads = threads or sorted({1, 2, 4, 8, 12, 16, cores} & set(range(1, cores + 1)))
+    spent = collections.Counter()
+    over, transpose = compiled.over, compiled.CompiledSteps.transpose
+
+    def timed_over(name, parts, *args, **kw):
+        t0 = time.perf_counter()
+        got = over(name, parts, *args, **kw)
+        spent[name] += time.perf_counter() - t0
+        return got
+
+    def timed_transpose(self, *args):
+        t0 = time.perf_counter()
+        got = transpose(self, *args)
+        spent["reduce_blocks"] += time.perf_counter() - t0
+        return got
+    out, previous = {}, parallel.WORKERS
+    try:
+        for n in threads:
+            parallel.set_workers(n)
+            b = vp.bind(lat, v, f, dtype=np.float32, topology=topology)
+            b.solve(P, axes="XYZ")
+            spent.clear()
+            compiled.over, compiled.CompiledSteps.transpose = timed_over, timed_transpose
+            t0 = time.perf_counter()
+            for _ in range(rounds):
+                b.solve(P, axes="XYZ")
+            total = 1e3 * (time.perf_counter() - t0) / rounds
+            compiled.over, compiled.CompiledSteps.transpose = over, transpose
+            row = {k: 1e3 * t / rounds for k, t in spent.items()}
+            row["rest"] = total - sum(row.values())
+            row["solve"] = total
+            out[n] = row
+    finally:
+        compiled.over, compiled.CompiledSteps.transpose = over, transpose
+        parallel.set_workers(previous)
+    return out
+
+
+def passes_markdown(rows):
+    """The passes' table as Markdown."""
+    names = [k for k in next(iter(rows.values())) if k not in ("rest", "solve")] + ["rest", "solve"]
+    lines = ["| threads | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    for n, row in rows.items():
+        lines.append(f"| {n} | " + " | ".join(f"{row.get(k, 0.0):.2f} ms" for k in names) + " |")
+    return "\n".join(lines)
+
+
 def markdown(report):
     """The scaling table as Markdown."""
     lines = [f"{report['vertices']:,} vertices, {'x'.join(map(str, report['lattice']))} B-spline lattice, "
@@ -79,9 +143,19 @@ def main(argv=None):
     ap.add_argument("--subdivisions", type=int, default=7)
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--max-threads", type=int, default=None)
+    ap.add_argument("--team-parts", type=int, default=None,
+                    help="numba's threads from this many parts on (default: compiled.TEAM_PARTS)")
+    ap.add_argument("--passes", action="store_true", help="also time a solve's passes by thread count")
     args = ap.parse_args(argv)
+    compiled.load()
+    if args.team_parts is not None:
+        compiled.TEAM_PARTS = args.team_parts
     report = run(args.subdivisions, args.rounds, args.max_threads)
+    report["team_parts"] = compiled.TEAM_PARTS
     print(markdown(report), file=sys.stderr)
+    if args.passes and compiled.ready():
+        report["passes"] = passes(args.subdivisions)
+        print("\nA solve's passes (means of 21 solves):\n\n" + passes_markdown(report["passes"]), file=sys.stderr)
     print(json.dumps(report, indent=1))
     return 0
 

@@ -247,8 +247,9 @@ class _GPUSteps(_vsteps.Steps):
         np.add(read_texture(T["verts"], self.s.V, 4)[:, :3], self.s.origins, out=out)
         return out
 
-    def finite(self):
-        return True       # the coordinates are checked where they come back (`verts`)
+    def finite(self, verts=None):
+        # The slots' coordinates live on the GPU: what comes back (`verts`) is what is checked.
+        return verts is None or bool(np.isfinite(verts).all())
 
     def direction_gradient(self, p, q, D):
         raise ValueError("the GPU path corrects along lattice axes only")

@@ -60,6 +60,11 @@ MUTATIONS = {
         "    change_basis(A, c, 1, False, B)\n",
         "    change_basis(A, c, 0, False, B)\n",
         ["tests/test_core_compiled.py"], {}),
+    "team-part-short": (
+        "vpffd_addon/solve_kernels.py",
+        "        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1])",
+        "        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1] - 1)",
+        ["tests/test_core_compiled.py", "-k", "any_number_of_threads_is_the_same"], {}),
     "compiled-ring-unclosed": (
         "vpffd_addon/solve_kernels.py",
         "        acc += pm * q0 - qm * p0\n",

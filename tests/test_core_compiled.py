@@ -12,7 +12,8 @@ import pytest
 pytest.importorskip("numba", reason="numba is not installed in this environment")
 
 import vpffd_addon as vp  # noqa: E402
-from vpffd_addon import backends, compiled, parallel  # noqa: E402
+from vpffd_addon import backends, compiled, frame, parallel  # noqa: E402
+from vpffd_addon import offsets as offsets_  # noqa: E402
 from vpffd_addon.steps import NumpySteps  # noqa: E402
 
 from . import _meshes as M  # noqa: E402
@@ -25,7 +26,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 @pytest.fixture(scope="module")
 def kernels():
-    assert compiled.load(), compiled.why()
+    # (with the teams for numba's threads, which load() leaves out on machines of fewer cores)
+    assert compiled.load(teams=True), compiled.why()
     yield compiled
     compiled.unload()
 
@@ -209,8 +211,9 @@ def test_a_compiled_re_embedding_is_numpys_bit_for_bit(kernels, dtype):
             vp.bind(lat, moved, tris, dtype=np.float32, topology=topology)
 
 
+@pytest.mark.parametrize("team_parts", [99, 3])
 @pytest.mark.parametrize("threads", [1, 3, 5])
-def test_a_re_embedding_on_any_number_of_threads_is_numpys_bit_for_bit(kernels, threads):
+def test_a_re_embedding_on_any_number_of_threads_is_numpys_bit_for_bit(kernels, threads, team_parts, monkeypatch):
     # Every pass of a compiled re-embedding is split over the worker threads (the positions and
     # their bounds, the cells, the counting sort, the slots, what they hold, the faces' terms);
     # what the parts give is combined so that the binding is NumPy's on any number of threads.
@@ -222,6 +225,8 @@ def test_a_re_embedding_on_any_number_of_threads_is_numpys_bit_for_bit(kernels, 
     lat = vp.Lattice((5, 6, 4), ("CATMULL_ROM", "LINEAR", "BSPLINE"))
     topology = vp.Topology(tris, len(verts))
     moved = (verts * 1.05 + [0.02, -0.01, 0.03]).astype(np.float32)
+    # On the Python worker threads, and (team_parts 3) as one call of each pass on numba's threads.
+    monkeypatch.setattr(compiled, "TEAM_PARTS", team_parts)
     previous = parallel.set_workers(threads)
     try:
         ref, out = _bind_both(lat, moved, topology.tris, dtype=np.float32, topology=topology)
@@ -230,6 +235,43 @@ def test_a_re_embedding_on_any_number_of_threads_is_numpys_bit_for_bit(kernels, 
     assert len(out.vertex_parts) == threads and out.n_islands == 3 and out.n_outside > 0
     for name, a in _arrays(ref).items():
         np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_a_solve_on_any_number_of_threads_is_the_same_bit_for_bit(kernels, dtype, monkeypatch):
+    # From compiled.TEAM_PARTS parts on (here 4), every pass runs as one call on numba's own
+    # threads (a "team"); below, on the Python worker threads. Both make the same call per part and the
+    # blocks are added in order, so a solve (the closed form along XYZ; islands: the joint steps
+    # in float64, over the three gradients at once) and its frame's passes (the affine maps, the
+    # float32 offsets) give the same numbers on 1, 2, 4 and 5 parts, whatever this machine's cores.
+    v, f = vp.icosphere(6, 0.45)
+    v2, f2 = vp.icosphere(4, 0.12)
+    verts = np.vstack([v, v2 + [0.25, 0.2, 0.1]])
+    tris = np.vstack([f, f2 + len(v)])
+    lat = vp.Lattice((6, 5, 6), ("BSPLINE", "CATMULL_ROM", "BSPLINE"), bounds=((-0.5,) * 3, (0.5,) * 3))
+    P = lat.rest_points * [1.0, 1.1, 0.6] + np.random.default_rng(4).normal(0, 0.01, lat.rest_points.shape)
+    mat = np.array([[0.9, 0.1, 0.0, 0.2], [-0.1, 1.1, 0.05, 0.0], [0.0, 0.2, 0.8, -0.3], [0.0, 0.0, 0.0, 1.0]])
+    topology = vp.Topology(tris, len(verts))
+    assert compiled.kernels().get("forward_team") is not None, "numba's parallel mode is not in use"
+    monkeypatch.setattr(compiled, "TEAM_PARTS", 4)      # (on any machine, 4 and 5 parts as teams)
+    results = {}
+    previous = parallel.set_workers(1)
+    try:
+        for n in (1, 2, 4, 5):
+            parallel.set_workers(n)
+            b = vp.bind(lat, verts, tris, dtype=dtype, topology=topology)
+            assert len(b.block_parts) == n and len(b.vertex_parts) == n
+            one = b.solve(P, axes="XYZ")
+            many = b.solve(P, axes="XYZ", islands=True)
+            mapped = frame._affine(one.verts.astype(np.float32), mat)
+            offsets = offsets_.float32_offsets(mapped, verts.astype(np.float32), None)
+            results[n] = [one.verts, one.points, many.verts, many.points, mapped, offsets[0], offsets[1]]
+    finally:
+        parallel.set_workers(previous)
+    for n in (2, 4, 5):
+        for a, ref in zip(results[n], results[1]):
+            np.testing.assert_array_equal(a, ref, err_msg=f"{n} parts")
+    assert cpu_while_asleep(0.3) < 20.0         # numba's idle threads wait without spinning
 
 
 def test_bezier_and_one_point_axes_bind_with_numpy(kernels):

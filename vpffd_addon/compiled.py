@@ -11,8 +11,12 @@ calls `load()` where a pause does not matter.
 
 Each kernel call is serial and sums in a fixed order; calls run on the fixed parts of
 `parallel.py`, as NumPy's kernels do, so a result never depends on what ran before (chunked renders
-stay bit-identical to one render on the same machine).
+stay bit-identical to one render on the same machine). `over` hands a pass's parts to the Python
+worker threads, or, from `TEAM_PARTS` parts on, to numba's own threads in one call (the pass's
+team): the same call per part either way (docs/performance.md, "Every core").
 """
+import threading
+
 import numpy as np
 
 from . import frame_kernels, layout_kernels, parallel, solve_kernels
@@ -28,7 +32,8 @@ NUMBA_RANGE = ((0, 61), (0, 68))
 #: and numba refuses a newer one at import; checked first, so that the panel says so plainly.
 NUMPY_RANGE = ((1, 24), (2, 5))
 
-_state = {"kernels": None, "why": "not loaded (vpffd_addon.compiled.load() compiles the kernels)"}
+_state = {"kernels": None, "why": "not loaded (vpffd_addon.compiled.load() compiles the kernels)",
+          "teams": None}
 
 
 def why():
@@ -57,15 +62,22 @@ def _version(text):
     return tuple(parts)
 
 
-def load(cache=True):
+def load(cache=True, teams=None):
     """Compile the kernels (or load them from numba's cache when `cache`). Returns True when they
     are ready; otherwise False, with `why()` saying why (numba missing, a version outside
     `NUMBA_RANGE`, a NumPy outside `NUMPY_RANGE`, a compile error). The cache folder is numba's
-    (`NUMBA_CACHE_DIR`, set by the host before the first import of numba)."""
-    if _state["kernels"] is not None:
-        return True
-    if _state.get("loaded") is not None:
+    (`NUMBA_CACHE_DIR`, set by the host before the first import of numba). `teams`: whether to
+    compile the passes for numba's own threads too (`over`); None: where this machine has
+    `TEAM_PARTS` cores or more (on fewer, a frame never has that many parts, and their compile
+    would double the first one's time for nothing)."""
+    if teams is None:
+        teams = parallel.cores() >= TEAM_PARTS
+    if _state["kernels"] is None and _state.get("loaded") is not None:
         _state["kernels"], _state["why"] = _state["loaded"], None
+    if _state["kernels"] is not None:
+        if teams and _state["teams"] is None:       # (loaded without them before: add them)
+            import numba
+            _try_teams(numba, cache)
         return True
     if not NUMPY_RANGE[0] <= _version(np.__version__) <= NUMPY_RANGE[1]:
         lo, hi = (".".join(map(str, v)) for v in NUMPY_RANGE)
@@ -88,7 +100,23 @@ def load(cache=True):
         _state["why"] = f"the kernels did not compile ({type(exc).__name__}: {exc})"
         return False
     _state["kernels"], _state["why"] = kernels, None
+    if teams:
+        _try_teams(numba, cache)
     return True
+
+
+def _try_teams(numba, cache):
+    """Add the teams to the loaded kernels and check them (`_smoke`); where that fails, the
+    kernels stay without them (the Python threads then serve every part) and `_state["teams"]`
+    says why."""
+    kernels = _state["kernels"]
+    try:
+        _add_teams(numba, cache, kernels)
+        _smoke(kernels)
+    except Exception as exc:
+        _state["teams"] = f"numba's threads are not used ({type(exc).__name__}: {exc})"
+        for name in [k for k in kernels if k.endswith("_team")]:
+            del kernels[name]
 
 
 def _compile(numba, cache):
@@ -103,6 +131,86 @@ def _compile(numba, cache):
             **frame_kernels.define(njit)}
 
 
+def _add_teams(numba, cache, kernels):
+    """Add every pass's team (`<name>_team`, `over`) to `kernels`, where numba's threading layer
+    allows (`_team_layer`); `_state["teams"]` then says "ready", else why not."""
+    if not _team_layer(numba):
+        _state["teams"] = ("numba's threads are not used (this process runs another of numba's threading "
+                           "layers than workqueue, whose idle threads would spin)")
+        return
+    njit_team = numba.njit(cache=cache, nogil=True, parallel=True, error_model="numpy")
+    for module in (solve_kernels, frame_kernels, layout_kernels):
+        # Each module's teams call `prange` and its kernels (`_k_<name>`) as globals of the
+        # module: numba caches a function that calls global functions, not one that calls a
+        # function it closes over.
+        space = vars(module)
+        space["prange"] = numba.prange
+        for name in module._TEAMS:
+            space["_k_" + name] = kernels[name]
+        kernels.update({name + "_team": njit_team(space[name + "_team"]) for name in module._TEAMS})
+    _team["set_threads"] = numba.set_num_threads
+    _team["most"] = int(numba.config.NUMBA_NUM_THREADS)
+    _state["teams"] = "ready"
+
+
+#: From this many parts on, a pass runs as one call on numba's own worker threads (`over`); below
+#: it, on `parallel.py`'s Python threads. Their hand-overs go through the GIL one worker after
+#: another, so their cost grows with the workers, while a team's launch costs about the same on
+#: 2 or 16 threads; measured on 16 cores, the solve and the re-embedding gain from about 10 parts
+#: on and not below (docs/performance.md, "Every core").
+TEAM_PARTS = 10
+_team = {"lock": threading.Lock(), "set_threads": None, "most": 0}
+
+
+def _team_layer(numba):
+    """Whether numba's parallel mode may run the teams: on its "workqueue" threading layer, whose
+    idle threads wait on a condition (OpenMP's spin for a while after every call, holding cores),
+    chosen here unless another user of numba in this process started a layer already. The
+    workqueue layer must not be entered by two threads at once: `over` holds a lock around it."""
+    try:
+        from numba.np.ufunc import parallel as layer
+        if getattr(layer, "_is_initialized", False):
+            return numba.threading_layer() == "workqueue"
+        numba.config.THREADING_LAYER = "workqueue"
+        return True
+    except Exception:       # (a numba without these: the Python threads serve every part)
+        return False
+
+
+def teams(name, parts):
+    """Whether `over` runs kernel `name` over `parts` as one team call (else on the Python
+    threads, where a caller may rather put several kernels into one hand-over per part)."""
+    K = _state["kernels"]
+    return len(parts) >= TEAM_PARTS and K is not None and K.get(name + "_team") is not None
+
+
+def over(name, parts, *args, returns=0, per_part=()):
+    """Kernel `name`(*args, start, stop) for every part of `parts` (slices): [its result per part]
+    (`returns` values each; None where 0). The arguments at the indices `per_part` hold a row per
+    part: part j gets row j. From `TEAM_PARTS` parts on, and where the kernel has a team
+    (`<name>_team`), all parts in one call on numba's threads; otherwise on `parallel.py`'s.
+    Either way every part makes the same call, so the result is the same bit for bit."""
+    K = _state["kernels"]
+    team = K.get(name + "_team") if len(parts) >= TEAM_PARTS else None
+    if team is None:
+        fn = K[name]
+        if per_part:
+            got = parallel.run(lambda j: fn(*[a[j] if i in per_part else a for i, a in enumerate(args)],
+                                            parts[j].start, parts[j].stop), list(range(len(parts))))
+        else:
+            got = parallel.run(lambda p: fn(*args, p.start, p.stop), parts)
+        return [(r,) for r in got] if returns == 1 else got
+    edges = np.array([p.start for p in parts] + [parts[-1].stop], np.int64)
+    got = np.zeros((len(parts), returns)) if returns else None
+    with _team["lock"]:
+        _team["set_threads"](max(1, min(len(parts), _team["most"])))
+        if returns:
+            team(edges, got, *args)
+        else:
+            team(edges, *args)
+    return [None] * len(parts) if got is None else [tuple(row) for row in got]
+
+
 def _smoke(kernels):
     """Run every kernel on tiny problems in both precisions (so that they compile now, not in a
     frame) and check them: the layout kernels against NumPy bit for bit, the compiled solve against
@@ -113,6 +221,7 @@ def _smoke(kernels):
     for n in (2, 3, 5):
         cell, t = np.empty(len(x), np.int64), np.empty(len(x))
         kernels["axis_cells"](np.stack([x, -x, x], 1), 2, n, -0.5, 0.5, cell, t, 0, len(x))
+        _team_agrees(kernels, "axis_cells", (np.stack([x, -x, x], 1), 2, n, -0.5, 0.5, cell, t), len(x), (5, 6))
         if not all(np.array_equal(a, b) for a, b in zip((cell, t), axis_cells(x, n, -0.5, 0.5))):
             raise RuntimeError(f"the cells of a {n}-point axis differ from NumPy's")
     # A bind's other kernels, with the argument types a bind gives them (each signature compiles
@@ -122,12 +231,14 @@ def _smoke(kernels):
     lengths = np.diff(np.r_[runs, len(x)])
     slot, sorted_slot = np.empty(len(x), np.int64), np.empty(len(x), np.int64)
     kernels["slots"](order, runs, lengths, np.arange(len(runs)), 8, slot, sorted_slot, 0, len(runs))
+    _team_agrees(kernels, "slots", (order, runs, lengths, np.arange(len(runs)), 8, slot, sorted_slot), len(runs), (5, 6))
     if not np.array_equal(slot[order] // 8, np.repeat(np.arange(len(runs)), lengths)):
         raise RuntimeError("the slots of the runs are not in their blocks")
     coords = np.array([[0.0, 1.0, 0.0, 0.3], [0.0, 0.0, 1.0, 0.2], [0.0, 0.0, 0.0, 1.1]])
     tris_t = np.array([[0, 1, 3], [1, 2, 2], [2, 3, 0]], np.int64)
     vol = np.empty(3)
     kernels["face_volumes"](np.ascontiguousarray(coords.T), tris_t, vol, 0, 3)
+    _team_agrees(kernels, "face_volumes", (np.ascontiguousarray(coords.T), tris_t, vol), 3, (2,))
     if not np.array_equal(vol, face_volumes(coords, tris_t)):
         raise RuntimeError("the faces' volume terms differ from NumPy's")
     n_slots = 8 * len(runs)
@@ -156,11 +267,15 @@ def _smoke(kernels):
         key, counts = np.empty(V, np.int64), np.zeros((2, k * 484), np.int64)
         for j, (v0, v1) in enumerate(((0, len(x)), (len(x), V))):
             kernels["cell_keys"](cu, cv, cw, labels, dims, key, counts[j], v0, v1)
+        _team_agrees(kernels, "cell_keys", (cu, cv, cw, labels, dims, key, counts), V, (5, 6),
+                     edges=(0, len(x), V))
         start, place = np.empty(k * 484 + 1, np.int64), np.empty((2, k * 484), np.int64)
         kernels["key_starts"](counts, start, place)
+        place_start = place.copy()
         got = np.empty(V, np.int64)
         for j, (v0, v1) in enumerate(((0, len(x)), (len(x), V))):
             kernels["place_keys"](key, place[j], got, v0, v1)
+        _team_agrees(kernels, "place_keys", (key, place_start, got), V, (2,), edges=(0, len(x), V))
         want = ((cw + 3) * 11 + cv + 3) * 11 + cu + 3 + (labels * 484 if k > 1 else 0)
         if not (np.array_equal(got, np.argsort(want, kind="stable")) and start[-1] == V
                 and np.array_equal(key, want)):
@@ -173,6 +288,9 @@ def _smoke(kernels):
             out, lo, hi, rel = np.empty((len(x), 3)), np.empty((k, 3)), np.empty((k, 3)), np.empty((len(x), 3))
             bad = kernels["positions"](given, labels, out, lo, hi, 0, len(x))
             kernels["relative"](out, 0.5 * (lo + hi), labels, rel, 0, len(x))
+            _team_agrees(kernels, "positions", (given, labels, out, lo[None], hi[None]), len(x), (2, 3, 4),
+                         edges=(0, len(x)), check=lambda got, bad=bad: got[0, 0] == bad)
+            _team_agrees(kernels, "relative", (out, 0.5 * (lo + hi), labels, rel), len(x), (3,))
             want = given.astype(np.float64)
             if not (bad == 0 and np.array_equal(out, want)
                     and np.array_equal(lo, np.array([want[rows == r].min(0) for r in range(k)]))
@@ -187,6 +305,9 @@ def _smoke(kernels):
         if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))
                 and outside == 3):                  # (-0.9, 0.77 and 1.6)
             raise RuntimeError("the per-slot values are not at their slots")
+        _team_agrees(kernels, "sorted_values", (order, sorted_slot, xyz, xyz, np.ones(len(x)), np.array([5, 5, 5], np.int64),
+                                                np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0),
+                     len(x), (9, 10, 11), check=lambda got: got[:, 0].sum() == 3)
         _smoke_solve(kernels, dtype)
 
 
@@ -212,6 +333,7 @@ def _smoke_solve(kernels, dtype):
     X = np.empty((3, 4), dtype)
     coef = solve_kernels.constants(kinds, dtype)
     kernels["forward"](params, coef, cell, shape, D, x0, np.arange(3), X, 0, 1)
+    _team_agrees(kernels, "forward", (params, coef, cell, shape, D, x0, np.arange(3), X), 1, (7,))
     tol = 1e-5 if dtype == np.float32 else 1e-12
     if not np.allclose(X, x0 + D.astype(float) @ SB.T, rtol=0, atol=tol * 10):
         raise RuntimeError("the compiled forward product differs from NumPy's")
@@ -226,11 +348,15 @@ def _smoke_solve(kernels, dtype):
         start, entries, ring = np.zeros(5, np.int64), np.empty(rstart[-1], np.int32), np.zeros(4, np.int8)
         kernels["slot_incidence_start"](slot, rstart, start)
         kernels["slot_incidence_fill"](slot, rstart, entries_v[:rstart[-1]], ring_v, start, entries, ring, 0, 4)
+        _team_agrees(kernels, "slot_incidence_fill", (slot, rstart, entries_v[:rstart[-1]].copy(), ring_v, start,
+                                                      entries, ring), 4, (5, 6))
         if int(ring.sum()) != n_rings:
             raise RuntimeError("the faces around the vertices were not made rings where they close")
         for xp, xq in ((X[1], X[2]), (X[1].astype(float), X[2].astype(float))):
             g, M, sums = np.empty(4), np.empty((1, 64)), np.empty((2, 1))
             kernels["gradient_transpose"](xp, xq, start, entries, ring, params, x0[0], g, M, sums, 0, 1)
+            _team_agrees(kernels, "gradient_transpose", (xp, xq, start, entries, ring, params, x0[0], g, M, sums),
+                         1, (7, 8, 9))
             ref = gradient_component(xp[faces], xq[faces], faces, 4)
             alpha = np.zeros((1, 64))
             kernels["reduce_blocks"](M, cell, np.zeros(1, np.int64), shape, coef, alpha)
@@ -240,6 +366,7 @@ def _smoke_solve(kernels, dtype):
                 raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
         g, M, sums = np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))
         kernels["gradient_transpose3"](X, start, entries, ring, params, x0, g, M, sums, 0, 1)
+        _team_agrees(kernels, "gradient_transpose3", (X, start, entries, ring, params, x0, g, M, sums), 1, (6, 7, 8))
         for a in range(3):
             ref = gradient_component(X[(a + 1) % 3][faces], X[(a + 2) % 3][faces], faces, 4)
             alpha = np.zeros((1, 64))
@@ -259,6 +386,7 @@ def _smoke_solve(kernels, dtype):
     for given in (A.T.copy(), A.T.astype(np.float32)):
         out = np.empty((len(given), 3))
         kernels["affine"](given, mat, out, 0, len(given))
+        _team_agrees(kernels, "affine", (given, mat, out), len(given), (2,))
         if not np.array_equal(out, affine(given, mat)):
             raise RuntimeError("the compiled affine map differs from NumPy's")
     pos = np.array([[0.1, -2.5, 3.0], [1e-9, 7.25, -0.3]])
@@ -266,6 +394,9 @@ def _smoke_solve(kernels, dtype):
         off, out = np.empty((2, 3), np.float32), np.empty((2, 3), np.result_type(given.dtype, np.float32))
         written = (pos - given).astype(np.float32)
         flag, changed, moved = kernels["float32_offsets"](pos, given, written, off, out, 0, 2)
+        _team_agrees(kernels, "float32_offsets", (pos, given, written, off, out), 2, (3, 4),
+                     check=lambda got, r=(flag, changed, moved): (got[:, 0].max(), bool(got[:, 1].any()),
+                                                                  got[:, 2].max()) == (r[0], bool(r[1]), r[2]))
         if not (flag == 0 and not changed and np.array_equal(off, written) and np.array_equal(out, given + written)
                 and moved == float(np.abs(written).max())):
             raise RuntimeError("the compiled offsets differ from NumPy's")
@@ -280,8 +411,31 @@ def _smoke_solve(kernels, dtype):
         raise RuntimeError("the compiled triangular solves or condition estimate differ from LAPACK's")
     out = np.empty((4, 3))
     kernels["to_verts"](X, slot, np.zeros((1, 3)), np.zeros(4, np.int64), out, 0, 4)
+    _team_agrees(kernels, "to_verts", (X, slot, np.zeros((1, 3)), np.zeros(4, np.int64), out), 4, (4,),
+                 check=lambda got: got[:, 0].sum() == 0)
     if not np.array_equal(out, X.T.astype(float)):
         raise RuntimeError("the compiled vertices differ from the slots'")
+
+
+def _team_agrees(kernels, name, args, stop, outs, edges=None, check=None):
+    """Run kernel `name`'s team, where it has one, on `args` (what the kernel was just called with
+    over 0..stop, per-part arrays with a row per part of `edges`) in the parts `edges` (default
+    two halves) with fresh outputs (the arguments at `outs`), and check that it wrote what the
+    kernel wrote (and, with `check`, that check(the parts' results (parts, 3)) holds): so the team
+    compiles now, for these argument types, not in a frame."""
+    team = kernels.get(name + "_team")
+    if team is None:
+        return
+    fresh = list(args)
+    for i in outs:
+        fresh[i] = np.zeros_like(args[i])
+    edges = np.array((0, stop // 2, stop) if edges is None else edges, np.int64)
+    got = np.zeros((len(edges) - 1, 3))
+    with _team["lock"]:
+        team(edges, *(([got] if check is not None else []) + fresh))
+    same = all(np.array_equal(fresh[i], args[i]) for i in outs) and (check is None or check(got))
+    if not same:
+        raise RuntimeError(f"the compiled {name} on numba's threads differs from its one call")
 
 
 class _Gradient:
@@ -323,7 +477,10 @@ class CompiledSteps(Steps):
             if got is None or got[0] != dtype:
                 got = b.converted = (dtype, b.params.astype(dtype), b.x0.astype(dtype))
             self.params, self.x0 = got[1], got[2]
-        self.X = self.x0.copy()
+        # Every component is made by a forward pass before it is read (`Steps.refresh`: none is
+        # fresh at first), so no copy of x0 is needed.
+        self.X = np.empty_like(self.x0)
+        self._checked = (None, False)
         lat = b.lattice
         self.coef = solve_kernels.constants(lat.interpolation, dtype)
         self.shape = np.array(lat.shape, np.int64)
@@ -337,22 +494,20 @@ class CompiledSteps(Steps):
         of the same weights, so they keep the volume the solve measured."""
         return self if not self.float32 else CompiledSteps(self.b, np.float64)
 
-    def _blocks(self, fn):
-        parallel.run(lambda p: fn(p.start, p.stop), self.b.block_parts)
+    def _blocks(self, name, *args):
+        over(name, self.b.block_parts, *args)
 
     def _forward(self, components, D):
-        b, K = self.b, self.K
+        b = self.b
         Dt = np.ascontiguousarray(D.T, dtype=self.X.dtype)
         comps = np.array(components, np.int64)
-        self._blocks(lambda b0, b1: K["forward"](self.params, self.coef, b.block_cell, self.shape, Dt,
-                                                 self.x0, comps, self.X, b0, b1))
+        self._blocks("forward", self.params, self.coef, b.block_cell, self.shape, Dt, self.x0, comps, self.X)
 
     def _pass(self, xp, xq, x0a):
-        b, K = self.b, self.K
+        b = self.b
         start, inc, ring = incidence(b)
         out = _Gradient(b.x0.shape[1], self.n_blocks)
-        self._blocks(lambda b0, b1: K["gradient_transpose"](xp, xq, start, inc, ring, self.params,
-                                                            x0a, out.g, out.M, out.sums, b0, b1))
+        self._blocks("gradient_transpose", xp, xq, start, inc, ring, self.params, x0a, out.g, out.M, out.sums)
         return out
 
     def axis_gradient(self, axis, D):
@@ -363,13 +518,12 @@ class CompiledSteps(Steps):
     def axis_gradients(self, D):
         """The three axis gradients at the same coordinates, from one pass over the faces
         (`solve_kernels.gradient_transpose3`): (g_x, g_y, g_z) as `axis_gradient` gives them."""
-        b, K = self.b, self.K
+        b = self.b
         self.refresh((0, 1, 2), D)
         start, inc, ring = incidence(b)
         n_slots = b.x0.shape[1]
         g, M, sums = np.empty((3, n_slots)), np.empty((3, self.n_blocks, 64)), np.empty((3, 2, self.n_blocks))
-        self._blocks(lambda b0, b1: K["gradient_transpose3"](self.X, start, inc, ring, self.params,
-                                                             self.x0, g, M, sums, b0, b1))
+        self._blocks("gradient_transpose3", self.X, start, inc, ring, self.params, self.x0, g, M, sums)
         out = []
         for a in range(3):
             one = _Gradient.__new__(_Gradient)
@@ -414,8 +568,8 @@ class CompiledSteps(Steps):
         b = self.b
         field = np.zeros((1, b.x0.shape[1]), self.X.dtype)
         d = np.asarray(t, self.X.dtype)[None]
-        self._blocks(lambda b0, b1: self.K["forward"](self.params, self.coef, b.block_cell, self.shape, d,
-                                                      field, np.zeros(1, np.int64), field, b0, b1))
+        self._blocks("forward", self.params, self.coef, b.block_cell, self.shape, d, field,
+                     np.zeros(1, np.int64), field)
         self.X += (e[:, None] * field).astype(self.X.dtype)
 
     def verts(self, D):
@@ -423,12 +577,16 @@ class CompiledSteps(Steps):
         b = self.b
         out = np.empty((b.n_verts, 3))
         rows = vertex_rows(b)
-        parallel.run(lambda p: self.K["to_verts"](self.X, b.slot, b.island_origin, rows, out, p.start, p.stop),
-                     b.vertex_parts)
+        bad = over("to_verts", b.vertex_parts, self.X, b.slot, b.island_origin, rows, out, returns=1)
+        self._checked = (out, sum(part[0] for part in bad) == 0)
         return out
 
-    def finite(self):
-        return bool(np.isfinite(self.X).all())
+    def finite(self, verts=None):
+        if verts is not None and self._checked[0] is verts:
+            # (the vertices' coordinates were checked as they were made; a slot that no vertex
+            # uses, a block's padding, does not matter)
+            return self._checked[1]
+        return super().finite(verts)
 
 
 def _along(e, X):
@@ -452,8 +610,7 @@ def incidence(binding):
         start = np.zeros(n_slots + 1, np.int64)
         entries, ring = np.empty(len(around[1]), np.int32), np.zeros(n_slots, np.int8)
         K["slot_incidence_start"](slot, around[0], start)
-        parallel.run(lambda p: K["slot_incidence_fill"](slot, *around, start, entries, ring, p.start, p.stop),
-                     binding.vertex_parts)
+        over("slot_incidence_fill", binding.vertex_parts, slot, *around, start, entries, ring)
         got = binding.incidence = (start, entries, ring)
     return got
 

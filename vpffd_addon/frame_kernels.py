@@ -48,4 +48,26 @@ def float32_offsets(positions, inputs, written, offsets, output, v0, v1):
     return 0, changed, moved
 
 
+# Every part at once on numba's own worker threads (`compiled.over`, as in `solve_kernels`):
+# part k covers edges[k]..edges[k + 1] - 1, the same call `parallel.run` makes for it.
+prange = range
+
+
+def affine_team(edges, points, mat, out):
+    for k in prange(edges.shape[0] - 1):
+        _k_affine(points, mat, out, edges[k], edges[k + 1])  # noqa: F821
+
+
+def float32_offsets_team(edges, got, positions, inputs, written, offsets, output):
+    # got (parts, 3) float64: each part's (flag, changed, largest |offset|).
+    for k in prange(edges.shape[0] - 1):
+        flag, changed, moved = _k_float32_offsets(positions, inputs, written, offsets, output,  # noqa: F821
+                                                  edges[k], edges[k + 1])
+        got[k, 0] = flag
+        got[k, 1] = 1.0 if changed else 0.0
+        got[k, 2] = moved
+
+
+
 _KERNELS = {"affine": affine, "float32_offsets": float32_offsets}
+_TEAMS = tuple(_KERNELS)

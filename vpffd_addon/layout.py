@@ -10,7 +10,7 @@ counting sort's places laid out part after part within every key). `kernels` is
 """
 import numpy as np
 
-from . import parallel
+from . import compiled, parallel
 
 #: Parts of the counting sort keep a count per key each: more parts only where those counts stay
 #: small beside the vertices (many islands give many keys).
@@ -24,15 +24,9 @@ def positions(kernels, verts, labels, k):
     V = len(verts)
     out = np.empty((V, 3))
     parts = parallel.split(V, V)
-    bounds = [(np.empty((k, 3)), np.empty((k, 3))) for _ in parts]
-
-    def part(j):
-        lo, hi = bounds[j]
-        return kernels["positions"](verts, labels, out, lo, hi, parts[j].start, parts[j].stop)
-    bad = sum(parallel.run(part, list(range(len(parts)))))
-    lo = np.min([b[0] for b in bounds], axis=0)
-    hi = np.max([b[1] for b in bounds], axis=0)
-    return out, lo, hi, bad
+    lo, hi = np.empty((len(parts), k, 3)), np.empty((len(parts), k, 3))
+    got = compiled.over("positions", parts, verts, labels, out, lo, hi, returns=1, per_part=(3, 4))
+    return out, lo.min(axis=0), hi.max(axis=0), int(sum(part[0] for part in got))
 
 
 def relative(kernels, verts, origin, labels):
@@ -40,7 +34,7 @@ def relative(kernels, verts, origin, labels):
     vertex to take origin[0]) -> (V, 3) float64."""
     V = len(verts)
     rel = np.empty_like(verts)
-    parallel.run(lambda p: kernels["relative"](verts, origin, labels, rel, p.start, p.stop), parallel.split(V, V))
+    compiled.over("relative", parallel.split(V, V), verts, origin, labels, rel)
     return rel
 
 
@@ -50,11 +44,16 @@ def axis_cells(kernels, verts, lattice):
     V = len(verts)
     cells = [(np.empty(V, np.int64), np.empty(V)) for _ in range(3)]
     args = [(int(lattice.shape[a]), float(lattice.lo[a]), float(lattice.hi[a])) for a in range(3)]
+    parts = parallel.split(V, V)
+    if compiled.teams("axis_cells", parts):
+        for a in range(3):
+            compiled.over("axis_cells", parts, verts, a, *args[a], *cells[a])
+        return cells
 
-    def part(p):
+    def part(p):        # (the three axes in one hand-over per part)
         for a in range(3):
             kernels["axis_cells"](verts, a, *args[a], *cells[a], p.start, p.stop)
-    parallel.run(part, parallel.split(V, V))
+    parallel.run(part, parts)
     return cells
 
 
@@ -70,13 +69,11 @@ def counting_order(kernels, cu, cv, cw, labels, dims, n_keys):
     P = len(parts)
     key = np.empty(V, np.int64)
     counts = np.zeros((P, n_keys), np.int64)
-    parallel.run(lambda j: kernels["cell_keys"](cu, cv, cw, labels, dims, key, counts[j],
-                                                 parts[j].start, parts[j].stop), list(range(P)))
+    compiled.over("cell_keys", parts, cu, cv, cw, labels, dims, key, counts, per_part=(6,))
     start, place = np.empty(n_keys + 1, np.int64), np.empty((P, n_keys), np.int64)
     kernels["key_starts"](counts, start, place)
     order = np.empty(V, np.int64)
-    parallel.run(lambda j: kernels["place_keys"](key, place[j], order, parts[j].start, parts[j].stop),
-                 list(range(P)))
+    compiled.over("place_keys", parts, key, place, order, per_part=(1,))
     return start, order
 
 
@@ -87,8 +84,8 @@ def slots(kernels, runs, bs, slot, sorted_slot):
     order, run_start = runs[0], runs[1]
     V = len(order)
     cuts = [0] + [int(np.searchsorted(run_start, p.start)) for p in parallel.split(V, V)[1:]] + [len(run_start)]
-    parallel.run(lambda j: kernels["slots"](*runs, bs, slot, sorted_slot, cuts[j], cuts[j + 1]),
-                 list(range(len(cuts) - 1)))
+    compiled.over("slots", [slice(cuts[j], cuts[j + 1]) for j in range(len(cuts) - 1)], *runs, bs, slot,
+                  sorted_slot)
 
 
 def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel, face_vol):
@@ -101,11 +98,16 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel
     shape = np.array(lattice.shape, np.int64)
     eps = 1e-6 * lattice.size
 
-    def part(j):
+    values = (order, sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, eps, b.params, b.slot_influence, b.x0)
+    if compiled.teams("sorted_values", vparts):
+        got = compiled.over("sorted_values", vparts, *values, returns=1)
+        compiled.over("face_volumes", fparts, rel, tris_t, face_vol)
+        return int(sum(part[0] for part in got))
+
+    def part(j):        # (both kernels in one hand-over per part)
         outside = 0
         if j < len(vparts):
-            outside = kernels["sorted_values"](order, sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, eps,
-                                               b.params, b.slot_influence, b.x0, vparts[j].start, vparts[j].stop)
+            outside = kernels["sorted_values"](*values, vparts[j].start, vparts[j].stop)
         if j < len(fparts):
             kernels["face_volumes"](rel, tris_t, face_vol, fparts[j].start, fparts[j].stop)
         return outside

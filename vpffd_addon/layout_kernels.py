@@ -256,3 +256,62 @@ def define(njit):
             "axis_cells": axis_cells, "positions": positions, "relative": relative,
             "cell_keys": cell_keys, "key_starts": key_starts, "place_keys": place_keys,
             "components": components, "closed": closed}
+
+
+# Every part of a pass at once on numba's own worker threads (`compiled.over`; docs/performance.md,
+# "Every core"): part j covers edges[j]..edges[j + 1] - 1 and makes the same call that
+# `parallel.run` makes for it (with its own row of the per-part arrays), so a binding stays NumPy's
+# bit for bit. `compiled.py` binds `prange` and the compiled kernels (`_k_<name>`)
+# by name in this module, where numba finds and caches them.
+prange = range
+
+
+def positions_team(edges, got, verts, labels, out, lo, hi):
+    # lo, hi (parts, k, 3): every part's bounds; got (parts, 1): its count of non-finite vertices.
+    for j in prange(edges.shape[0] - 1):
+        got[j, 0] = _k_positions(verts, labels, out, lo[j], hi[j], edges[j], edges[j + 1])  # noqa: F821
+
+
+def relative_team(edges, verts, origin, labels, rel):
+    for j in prange(edges.shape[0] - 1):
+        _k_relative(verts, origin, labels, rel, edges[j], edges[j + 1])  # noqa: F821
+
+
+def axis_cells_team(edges, xyz, a, n, lo, hi, cell, tt):
+    for j in prange(edges.shape[0] - 1):
+        _k_axis_cells(xyz, a, n, lo, hi, cell, tt, edges[j], edges[j + 1])  # noqa: F821
+
+
+def cell_keys_team(edges, cu, cv, cw, labels, dims, key, counts):
+    # counts (parts, K): every part's own counts.
+    for j in prange(edges.shape[0] - 1):
+        _k_cell_keys(cu, cv, cw, labels, dims, key, counts[j], edges[j], edges[j + 1])  # noqa: F821
+
+
+def place_keys_team(edges, key, place, order):
+    # place (parts, K): every part's own places.
+    for j in prange(edges.shape[0] - 1):
+        _k_place_keys(key, place[j], order, edges[j], edges[j + 1])  # noqa: F821
+
+
+def slots_team(edges, order, run_start, run_len, first_block, bs, slot, sorted_slot):
+    # edges: runs, not vertices.
+    for j in prange(edges.shape[0] - 1):
+        _k_slots(order, run_start, run_len, first_block, bs, slot, sorted_slot, edges[j], edges[j + 1])  # noqa: F821
+
+
+def sorted_values_team(edges, got, order, sorted_slot, verts, rel, s, shape, lo, hi, eps, params, influence, x0):
+    # got (parts, 1): every part's count of vertices outside the lattice.
+    for j in prange(edges.shape[0] - 1):
+        got[j, 0] = _k_sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, eps,  # noqa: F821
+                                     params, influence, x0, edges[j], edges[j + 1])
+
+
+def face_volumes_team(edges, rel, tris_t, face_vol):
+    for j in prange(edges.shape[0] - 1):
+        _k_face_volumes(rel, tris_t, face_vol, edges[j], edges[j + 1])  # noqa: F821
+
+
+_TEAMS = ("positions", "relative", "axis_cells", "cell_keys", "place_keys", "slots", "sorted_values",
+          "face_volumes")
+

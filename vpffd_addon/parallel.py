@@ -11,7 +11,7 @@ import queue
 import threading
 
 
-def _cores():
+def cores():
     """The cores this process may run on (its affinity where the platform tells it)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
@@ -20,7 +20,7 @@ def _cores():
 
 
 #: Threads a binding splits its work over: every core the process may use.
-WORKERS = _cores()
+WORKERS = cores()
 #: Below this many vertices per part, handing work to another thread costs more than it saves
 #: (a hand-over costs tens of microseconds; a compiled pass over 8,192 slots about as much).
 MIN_VERTS_PER_PART = 8192
@@ -71,7 +71,7 @@ def set_workers(n=None):
     """Split new bindings over n threads (None: every core), e.g. to measure how a kernel scales.
     Returns the previous count. Bindings made before keep their parts."""
     global WORKERS
-    previous, WORKERS = WORKERS, _cores() if n is None else max(1, int(n))
+    previous, WORKERS = WORKERS, cores() if n is None else max(1, int(n))
     return previous
 
 

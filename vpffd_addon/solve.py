@@ -19,6 +19,9 @@ from .volume import face_volumes
 
 _AXES = {"X": 0, "Y": 1, "Z": 2}
 _JOINT_ITERATIONS = 10   # Gauss-Newton steps for islands and pins (4 sufficed on real meshes)
+#: The axes' unit directions (read-only: rows of it are handed around as directions).
+_EYE = np.eye(3)
+_EYE.flags.writeable = False
 _OVERFLOW = "the correction overflowed: coordinates or displacements are too large for floating point"
 
 
@@ -195,11 +198,11 @@ class _State:
             return
         self._fused = {}
         for a, g in enumerate(fused(self.D)):
-            e = np.eye(3)[a]
+            e = _EYE[a]
             self._fused[(tuple(e.tolist()), self.moves)] = (a, g, self.k.x0_dot(a, g, *self._rows))
         for e, a in zip(dirs, axes):   # the directions as given (-X measures as +X)
             self._fused[(tuple(np.asarray(e, np.float64).tolist()), self.moves)] = \
-                self._fused[(tuple(np.eye(3)[a].tolist()), self.moves)]
+                self._fused[(tuple(_EYE[a].tolist()), self.moves)]
 
     def _gradient(self, e):
         axis, p, q = _frame(e)
@@ -251,7 +254,7 @@ class _State:
         b = self.b
         axis, g, base = self.gradient(e)
         if axis is not None:
-            e = np.eye(3)[axis]  # -X corrects exactly as +X: t absorbs the sign
+            e = _EYE[axis]  # -X corrects exactly as +X: t absorbs the sign
         alpha = self.alpha_rows(g) if preserve_volume else None
         before = self.volumes = self.measure(e, axis, g, base, alpha)
         if self.plain is None:
@@ -279,7 +282,12 @@ class _State:
         gram = _mm(CM, C.T)
         if not (np.isfinite(gram).all() and np.isfinite(r).all()):
             raise ValueError(_OVERFLOW)   # (LAPACK may never return on NaN input)
-        lam = np.linalg.lstsq(gram, r, rcond=tol.GRAM_RCOND)[0]
+        if len(r) == 1:
+            # One row (the volume alone): lstsq of a 1 x 1 system is r / gram, or 0 where gram
+            # is 0 (a singular value under any rcond); LAPACK's call costs more than the rest.
+            lam = r / gram[0] if gram[0, 0] != 0.0 else np.zeros(1)
+        else:
+            lam = np.linalg.lstsq(gram, r, rcond=tol.GRAM_RCOND)[0]
         t = _mv(CM.T, lam)
         reach = float(np.abs(t).max()) if len(t) else 0.0
         if not np.isfinite(reach):
@@ -326,7 +334,7 @@ class _State:
         plan, grads = [], []
         for e in dirs:
             axis, g, base = self.gradient(e)
-            e = np.eye(3)[axis] if axis is not None else e
+            e = _EYE[axis] if axis is not None else e
             grads.append((e, axis, g, base))
             plan.append(self.alpha_rows(g))
         e0, axis0, g0, base0 = grads[0]
@@ -372,7 +380,7 @@ class _State:
         self.gradients(dirs)
         for e in dirs:
             axis, g, base = self.gradient(e)
-            e = np.eye(3)[axis] if axis is not None else e
+            e = _EYE[axis] if axis is not None else e
             grads.append((e, axis, g, base))
             blocks.append(self.alpha_rows(g) if preserve_volume else None)
         e0, axis0, g0, base0 = grads[0]
@@ -520,7 +528,7 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
             st.start(dirs[0])
         plain = st.plain
     else:
-        e = np.eye(3)[0]
+        e = _EYE[0]
         plain = st.volumes = st.measure(e, *st.gradient(e), None)
     warnings = []
     if preserve_volume and m and not jointly and not st.volume_met().all():
@@ -595,7 +603,7 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         st.volumes = _volumes(b, st.k.verts(st.D), bool(islands))
         plain = st.volumes
     verts = st.k.verts(st.D)
-    if not (st.k.finite() and np.isfinite(verts).all() and np.isfinite(st.P).all()
+    if not (st.k.finite(verts) and np.isfinite(st.P).all()
             and np.isfinite(st.volumes).all() and np.isfinite(plain).all()):
         raise ValueError(_OVERFLOW)
 

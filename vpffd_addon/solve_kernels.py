@@ -581,14 +581,57 @@ def slot_incidence_fill(slot, start_v, entries_v, ring_v, start, entries, ring, 
 
 
 def to_verts(X, slot, origin, vertex_row, out, v0, v1):
-    # out[v] = X[:, slot[v]] + origin[vertex_row[v]] in float64, vertices v0..v1-1.
+    # out[v] = X[:, slot[v]] + origin[vertex_row[v]] in float64, vertices v0..v1-1. Returns how
+    # many of these coordinates are not finite (the solve's last check, here instead of a pass
+    # of its own over the vertices on one thread).
+    bad = 0
     for v in range(v0, v1):
         sl = slot[v]
         row = vertex_row[v]
         for c in range(3):
-            out[v, c] = np.float64(X[c, sl]) + origin[row, c]
+            x = np.float64(X[c, sl]) + origin[row, c]
+            out[v, c] = x
+            if not np.isfinite(x):
+                bad += 1
+    return bad
 
 
+# Every part of a pass at once on numba's own worker threads (`compiled.over`; docs/performance.md,
+# "Every core"): part k covers edges[k]..edges[k + 1] - 1, the same call that `parallel.run`
+# makes for it, so the results are the same bit for bit. `compiled.py` binds `prange` and the
+# compiled kernels (`_k_<name>`) by name in this module, where numba finds and caches them.
+prange = range
+
+
+def forward_team(edges, params, c, block_cell, shape, D, x0, comps, X):
+    for k in prange(edges.shape[0] - 1):
+        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1])  # noqa: F821
+
+
+def gradient_transpose_team(edges, xp, xq, inc_start, inc, ring, params, x0a, g, M, sums):
+    for k in prange(edges.shape[0] - 1):
+        _k_gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums,  # noqa: F821
+                              edges[k], edges[k + 1])
+
+
+def gradient_transpose3_team(edges, X, inc_start, inc, ring, params, x0, g, M, sums):
+    for k in prange(edges.shape[0] - 1):
+        _k_gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, edges[k], edges[k + 1])  # noqa: F821
+
+
+def slot_incidence_fill_team(edges, slot, rstart, entries_v, ring_v, start, entries, ring):
+    for k in prange(edges.shape[0] - 1):
+        _k_slot_incidence_fill(slot, rstart, entries_v, ring_v, start, entries, ring, edges[k], edges[k + 1])  # noqa: F821
+
+
+def to_verts_team(edges, got, X, slot, origin, vertex_row, out):
+    # got (parts, 1): every part's count of coordinates that are not finite.
+    for k in prange(edges.shape[0] - 1):
+        got[k, 0] = _k_to_verts(X, slot, origin, vertex_row, out, edges[k], edges[k + 1])  # noqa: F821
+
+
+
+_TEAMS = ("forward", "gradient_transpose", "gradient_transpose3", "slot_incidence_fill", "to_verts")
 _HELPERS = ("same_cell", "taps", "change_basis", "block_powers", "block_moments", "triangular_solve",
             "fan_gradient", "cell_polynomial")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",

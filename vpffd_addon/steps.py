@@ -104,5 +104,7 @@ class NumpySteps(Steps):
         self.refresh((0, 1, 2), D)
         return self.b.to_verts(self.X)
 
-    def finite(self):
-        return bool(np.isfinite(self.X).all())
+    def finite(self, verts=None):
+        """Whether the slots' coordinates, and `verts` (what `verts` returned) where given, are
+        all finite."""
+        return bool(np.isfinite(self.X).all() and (verts is None or np.isfinite(verts).all()))

@@ -131,6 +131,7 @@ def floor(b):
         t = min(_ms(lambda: horner(x, k, out, reps)) for _ in range(5))
         report[name] = round(16 * 4096 * reps / (t * 1e6), 2)
     steps = compiled.CompiledSteps(b)
+    steps.refresh((0, 1, 2), np.zeros((b.lattice.n_points, 3)))     # (the slots' coordinates made)
     start, inc, _ring = compiled.incidence(b)
     out = np.empty(b.x0.shape[1])
     gathers(steps.X[1], steps.X[2], start, inc, out)

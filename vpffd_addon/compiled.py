@@ -177,20 +177,22 @@ def _team_layer(numba):
         return False
 
 
-def teams(name, parts):
+def teams(name, parts, kernels=None):
     """Whether `over` runs kernel `name` over `parts` as one team call (else on the Python
     threads, where a caller may rather put several kernels into one hand-over per part)."""
-    K = _state["kernels"]
+    K = _state["kernels"] if kernels is None else kernels
     return len(parts) >= TEAM_PARTS and K is not None and K.get(name + "_team") is not None
 
 
-def over(name, parts, *args, returns=0, per_part=()):
+def over(name, parts, *args, returns=0, per_part=(), kernels=None):
     """Kernel `name`(*args, start, stop) for every part of `parts` (slices): [its result per part]
     (`returns` values each; None where 0). The arguments at the indices `per_part` hold a row per
     part: part j gets row j. From `TEAM_PARTS` parts on, and where the kernel has a team
     (`<name>_team`), all parts in one call on numba's threads; otherwise on `parallel.py`'s.
-    Either way every part makes the same call, so the result is the same bit for bit."""
-    K = _state["kernels"]
+    Either way every part makes the same call, so the result is the same bit for bit. `kernels`:
+    the kernels the caller holds (default: the loaded ones; a solve's steps keep theirs even where
+    `unload()` runs meanwhile)."""
+    K = _state["kernels"] if kernels is None else kernels
     team = K.get(name + "_team") if len(parts) >= TEAM_PARTS else None
     if team is None:
         fn = K[name]
@@ -495,7 +497,7 @@ class CompiledSteps(Steps):
         return self if not self.float32 else CompiledSteps(self.b, np.float64)
 
     def _blocks(self, name, *args):
-        over(name, self.b.block_parts, *args)
+        over(name, self.b.block_parts, *args, kernels=self.K)
 
     def _forward(self, components, D):
         b = self.b
@@ -577,7 +579,7 @@ class CompiledSteps(Steps):
         b = self.b
         out = np.empty((b.n_verts, 3))
         rows = vertex_rows(b)
-        bad = over("to_verts", b.vertex_parts, self.X, b.slot, b.island_origin, rows, out, returns=1)
+        bad = over("to_verts", b.vertex_parts, self.X, b.slot, b.island_origin, rows, out, returns=1, kernels=self.K)
         self._checked = (out, sum(part[0] for part in bad) == 0)
         return out
 
@@ -586,7 +588,9 @@ class CompiledSteps(Steps):
             # (the vertices' coordinates were checked as they were made; a slot that no vertex
             # uses, a block's padding, does not matter)
             return self._checked[1]
-        return super().finite(verts)
+        # (only the components a forward pass made: the others hold nothing yet)
+        return bool(all(np.isfinite(self.X[c]).all() for c in range(3) if self.fresh[c])
+                    and (verts is None or np.isfinite(verts).all()))
 
 
 def _along(e, X):
@@ -610,7 +614,7 @@ def incidence(binding):
         start = np.zeros(n_slots + 1, np.int64)
         entries, ring = np.empty(len(around[1]), np.int32), np.zeros(n_slots, np.int8)
         K["slot_incidence_start"](slot, around[0], start)
-        over("slot_incidence_fill", binding.vertex_parts, slot, *around, start, entries, ring)
+        over("slot_incidence_fill", binding.vertex_parts, slot, *around, start, entries, ring, kernels=K)
         got = binding.incidence = (start, entries, ring)
     return got
 

@@ -115,7 +115,7 @@ def _affine(points, mat):
         points = np.ascontiguousarray(points)
         m = np.ascontiguousarray(mat, dtype=np.float64)
         out = np.empty((len(points), 3))
-        compiled.over("affine", parts, points, m, out)
+        compiled.over("affine", parts, points, m, out, kernels=K)
         return out
     if len(parts) == 1:
         return affine(points, mat)

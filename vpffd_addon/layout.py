@@ -25,7 +25,7 @@ def positions(kernels, verts, labels, k):
     out = np.empty((V, 3))
     parts = parallel.split(V, V)
     lo, hi = np.empty((len(parts), k, 3)), np.empty((len(parts), k, 3))
-    got = compiled.over("positions", parts, verts, labels, out, lo, hi, returns=1, per_part=(3, 4))
+    got = compiled.over("positions", parts, verts, labels, out, lo, hi, returns=1, per_part=(3, 4), kernels=kernels)
     return out, lo.min(axis=0), hi.max(axis=0), int(sum(part[0] for part in got))
 
 
@@ -34,7 +34,7 @@ def relative(kernels, verts, origin, labels):
     vertex to take origin[0]) -> (V, 3) float64."""
     V = len(verts)
     rel = np.empty_like(verts)
-    compiled.over("relative", parallel.split(V, V), verts, origin, labels, rel)
+    compiled.over("relative", parallel.split(V, V), verts, origin, labels, rel, kernels=kernels)
     return rel
 
 
@@ -45,9 +45,9 @@ def axis_cells(kernels, verts, lattice):
     cells = [(np.empty(V, np.int64), np.empty(V)) for _ in range(3)]
     args = [(int(lattice.shape[a]), float(lattice.lo[a]), float(lattice.hi[a])) for a in range(3)]
     parts = parallel.split(V, V)
-    if compiled.teams("axis_cells", parts):
+    if compiled.teams("axis_cells", parts, kernels):
         for a in range(3):
-            compiled.over("axis_cells", parts, verts, a, *args[a], *cells[a])
+            compiled.over("axis_cells", parts, verts, a, *args[a], *cells[a], kernels=kernels)
         return cells
 
     def part(p):        # (the three axes in one hand-over per part)
@@ -69,11 +69,11 @@ def counting_order(kernels, cu, cv, cw, labels, dims, n_keys):
     P = len(parts)
     key = np.empty(V, np.int64)
     counts = np.zeros((P, n_keys), np.int64)
-    compiled.over("cell_keys", parts, cu, cv, cw, labels, dims, key, counts, per_part=(6,))
+    compiled.over("cell_keys", parts, cu, cv, cw, labels, dims, key, counts, per_part=(6,), kernels=kernels)
     start, place = np.empty(n_keys + 1, np.int64), np.empty((P, n_keys), np.int64)
     kernels["key_starts"](counts, start, place)
     order = np.empty(V, np.int64)
-    compiled.over("place_keys", parts, key, place, order, per_part=(1,))
+    compiled.over("place_keys", parts, key, place, order, per_part=(1,), kernels=kernels)
     return start, order
 
 
@@ -85,7 +85,7 @@ def slots(kernels, runs, bs, slot, sorted_slot):
     V = len(order)
     cuts = [0] + [int(np.searchsorted(run_start, p.start)) for p in parallel.split(V, V)[1:]] + [len(run_start)]
     compiled.over("slots", [slice(cuts[j], cuts[j + 1]) for j in range(len(cuts) - 1)], *runs, bs, slot,
-                  sorted_slot)
+                  sorted_slot, kernels=kernels)
 
 
 def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel, face_vol):
@@ -99,9 +99,9 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel
     eps = 1e-6 * lattice.size
 
     values = (order, sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, eps, b.params, b.slot_influence, b.x0)
-    if compiled.teams("sorted_values", vparts):
-        got = compiled.over("sorted_values", vparts, *values, returns=1)
-        compiled.over("face_volumes", fparts, rel, tris_t, face_vol)
+    if compiled.teams("sorted_values", vparts, kernels):
+        got = compiled.over("sorted_values", vparts, *values, returns=1, kernels=kernels)
+        compiled.over("face_volumes", fparts, rel, tris_t, face_vol, kernels=kernels)
         return int(sum(part[0] for part in got))
 
     def part(j):        # (both kernels in one hand-over per part)

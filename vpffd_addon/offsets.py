@@ -39,7 +39,7 @@ def float32_offsets(positions, inputs, written=None):
     output = np.empty((V, 3), np.result_type(inputs.dtype, np.float32))
     parts = parallel.split(V, V) if V else [slice(0, 0)]
     got = compiled.over("float32_offsets", parts, positions, inputs, written if same else _NONE,
-                        offsets, output, returns=3)
+                        offsets, output, returns=3, kernels=K)
     for flag, _, _ in got:
         if flag:
             raise ValueError(_NOT_FINITE if flag == 1 else _TOO_BIG)

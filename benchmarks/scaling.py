@@ -12,19 +12,18 @@ a K above the cores keeps them on the Python worker threads, as before numba's w
 `--passes` adds where a solve's time goes on 1, 2, 4, ... threads: each pass, the transposed
 product's reduction (one thread) and the rest (the closed forms, NumPy on one thread).
 """
-import collections
 import argparse
+import collections
 import json
 import os
 import sys
+import time
 
 import numpy as np
 
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if _ROOT not in sys.path:
     sys.path.insert(0, _ROOT)
-
-import time  # noqa: E402
 
 import vpffd_addon as vp  # noqa: E402
 from benchmarks.timing import timed  # noqa: E402
@@ -33,15 +32,21 @@ from vpffd_addon import compiled, parallel  # noqa: E402
 LATTICE = (6, 6, 6)
 
 
+def _problem(subdivisions):
+    """(verts, faces, lattice, points, topology): an icosphere squashed and jittered in a B-spline
+    lattice spanning [-0.5, 0.5]^3, the faces' topology made once."""
+    v, f = vp.icosphere(subdivisions, 0.45)
+    lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    P = lat.rest_points * [1.0, 1.0, 0.7] + np.random.default_rng(0).normal(0, 0.01, lat.rest_points.shape)
+    return v, f, lat, P, vp.Topology(f, len(v))
+
+
 def run(subdivisions=7, rounds=7, max_threads=None):
     """{"vertices", "kernels", "rows": [{"threads", "solve_ms", "reembed_ms", ...}]}: medians of
     `rounds` at every thread count from 1 to `max_threads` (default: every core)."""
     kernels = "compiled" if compiled.load() else f"NumPy ({compiled.why()})"
-    v, f = vp.icosphere(subdivisions, 0.45)
+    v, f, lat, P, topology = _problem(subdivisions)
     moved = v * 1.02 + 0.01
-    lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
-    P = lat.rest_points * [1.0, 1.0, 0.7] + np.random.default_rng(0).normal(0, 0.01, lat.rest_points.shape)
-    topology = vp.Topology(f, len(v))
     cores = parallel.WORKERS
     rows = []
     previous = parallel.WORKERS
@@ -73,10 +78,7 @@ def passes(subdivisions=7, rounds=21, threads=None):
     """{threads: {pass name: ms, "reduce_blocks", "rest", "solve"}}: the mean milliseconds of one
     XYZ solve's passes (summed over the solve's calls of each), by thread count (default 1, 2, 4,
     ... and every core)."""
-    v, f = vp.icosphere(subdivisions, 0.45)
-    lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
-    P = lat.rest_points * [1.0, 1.0, 0.7] + np.random.default_rng(0).normal(0, 0.01, lat.rest_points.shape)
-    topology = vp.Topology(f, len(v))
+    v, f, lat, P, topology = _problem(subdivisions)
     cores = parallel.WORKERS
     threads = threads or sorted({1, 2, 4, 8, 12, 16, cores} & set(range(1, cores + 1)))
     spent = collections.Counter()
@@ -147,8 +149,8 @@ def main(argv=None):
                     help="numba's threads from this many parts on (default: compiled.TEAM_PARTS)")
     ap.add_argument("--passes", action="store_true", help="also time a solve's passes by thread count")
     args = ap.parse_args(argv)
-    compiled.load()
     if args.team_parts is not None:
+        # (before `run` loads the kernels: their teams are compiled where the cores reach it)
         compiled.TEAM_PARTS = args.team_parts
     report = run(args.subdivisions, args.rounds, args.max_threads)
     report["team_parts"] = compiled.TEAM_PARTS

@@ -193,7 +193,7 @@ def over(name, parts, *args, returns=0, per_part=(), kernels=None):
     the kernels the caller holds (default: the loaded ones; a solve's steps keep theirs even where
     `unload()` runs meanwhile)."""
     K = _state["kernels"] if kernels is None else kernels
-    team = K.get(name + "_team") if len(parts) >= TEAM_PARTS else None
+    team = K[name + "_team"] if teams(name, parts, K) else None
     if team is None:
         fn = K[name]
         if per_part:

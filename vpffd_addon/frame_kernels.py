@@ -68,6 +68,5 @@ def float32_offsets_team(edges, got, positions, inputs, written, offsets, output
         got[k, 2] = moved
 
 
-
 _KERNELS = {"affine": affine, "float32_offsets": float32_offsets}
 _TEAMS = tuple(_KERNELS)

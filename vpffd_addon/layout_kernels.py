@@ -314,4 +314,3 @@ def face_volumes_team(edges, rel, tris_t, face_vol):
 
 _TEAMS = ("positions", "relative", "axis_cells", "cell_keys", "place_keys", "slots", "sorted_values",
           "face_volumes")
-

@@ -630,7 +630,6 @@ def to_verts_team(edges, got, X, slot, origin, vertex_row, out):
         got[k, 0] = _k_to_verts(X, slot, origin, vertex_row, out, edges[k], edges[k + 1])  # noqa: F821
 
 
-
 _TEAMS = ("forward", "gradient_transpose", "gradient_transpose3", "slot_incidence_fill", "to_verts")
 _HELPERS = ("same_cell", "taps", "change_basis", "block_powers", "block_moments", "triangular_solve",
             "fan_gradient", "cell_polynomial")

@@ -7,7 +7,6 @@ import numpy as np
 from .. import vpffd_addon as vp
 from ..vpffd_addon import outside as outside_modes
 from ..vpffd_addon import backends, wireframe
-from ..vpffd_addon.offsets import float32_offsets
 from . import compiled_backend, meshio, node_group, solver_helper
 from .saved_data import JACOBIAN_ATTRIBUTE, float_attribute
 from .status import set_status
@@ -51,7 +50,7 @@ def publish(d, state, frame, result, t0):
     # The offsets in float32, the output as Blender will compute it, whether they differ from
     # those written and the largest, in one pass (ValueError, nothing written, for non-finite
     # or float32-overflowing ones).
-    offsets32, output, changed, moved = float32_offsets(result.positions, X, state.written)
+    offsets32, output, changed, moved = result.float32_offsets(state.written)
     _write(state, frame.helper, offsets32, changed)
     seconds = time.perf_counter() - t0
     # Weights read before the vertex-group input changed are the old group's: solve again

@@ -60,6 +60,16 @@ MUTATIONS = {
         "    change_basis(A, c, 1, False, B)\n",
         "    change_basis(A, c, 0, False, B)\n",
         ["tests/test_core_compiled.py"], {}),
+    "offsets-still-moved": (
+        "vpffd_addon/frame_kernels.py",
+        "        if keep and still[v]:\n",
+        "        if False:\n",
+        ["tests/test_core_compiled.py", "tests/test_core_falloff.py"], {}),
+    "offsets-map-transposed": (
+        "vpffd_addon/frame_kernels.py",
+        "            q1 = p0 * m10 + p1 * m11 + p2 * m12 + m13\n",
+        "            q1 = p0 * m01 + p1 * m11 + p2 * m21 + m13\n",
+        ["tests/test_core_compiled.py", "tests/test_core_falloff.py"], {}),
     "team-part-short": (
         "vpffd_addon/solve_kernels.py",
         "        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1])",

@@ -265,7 +265,11 @@ def test_a_solve_on_any_number_of_threads_is_the_same_bit_for_bit(kernels, dtype
             many = b.solve(P, axes="XYZ", islands=True)
             mapped = frame._affine(one.verts.astype(np.float32), mat)
             offsets = offsets_.float32_offsets(mapped, verts.astype(np.float32), None)
-            results[n] = [one.verts, one.points, many.verts, many.points, mapped, offsets[0], offsets[1]]
+            # the same pass making the output from the solve's vertices (mapped, some kept still)
+            fused = offsets_.float32_offsets(one.verts, verts.astype(np.float32), None, matrix=mat,
+                                             still=np.arange(len(verts)) % 7 == 0)
+            results[n] = [one.verts, one.points, many.verts, many.points, mapped, offsets[0], offsets[1],
+                          fused[0], fused[1]]
     finally:
         parallel.set_workers(previous)
     for n in (2, 4, 5):
@@ -536,3 +540,52 @@ def test_the_compiled_offsets_are_numpys_bit_for_bit(kernels, dtype):
         for fn in (O.float32_offsets, O._numpy):
             with pytest.raises(ValueError, match=words):
                 fn(broken, inputs, None)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_offsets_made_from_the_solves_vertices_are_numpys_bit_for_bit(kernels, dtype):
+    # A frame writes its offsets straight from the solve's vertices in lattice space: the map back
+    # to the object's space, the positions of no influence kept exactly at their input, and the
+    # float32 offsets, in one pass. The same numbers as mapping the vertices with NumPy's
+    # elementwise product, setting the still ones back, and NumPy's offsets of the result.
+    from vpffd_addon import offsets as O
+    rng = np.random.default_rng(11)
+    inputs = rng.normal(0, 3, (40_000, 3)).astype(dtype)
+    mat = np.array([[0.8, 0.3, -0.1, 1.5], [-0.2, 1.3, 0.4, -0.7], [0.05, -0.6, 0.9, 2.25], [0, 0, 0, 1.0]])
+    back = np.linalg.inv(mat)
+    verts = (inputs.astype(np.float64) @ mat[:3, :3].T + mat[:3, 3]) * 1.02 + rng.normal(0, 1e-3, inputs.shape)
+    still = rng.random(len(inputs)) < 0.1
+    mapped = np.empty((len(inputs), 3))
+    for r in range(3):      # ((p0 m0 + p1 m1) + p2 m2) + m3, as the product is written out
+        mapped[:, r] = verts[:, 0] * back[r, 0] + verts[:, 1] * back[r, 1] + verts[:, 2] * back[r, 2] + back[r, 3]
+    kept = mapped.copy()
+    kept[still] = inputs[still]
+    for mask, expect in ((still, kept), (None, mapped)):
+        want = O._numpy(expect, inputs, None)
+        got = O.float32_offsets(verts, inputs, None, matrix=back, still=mask)
+        fallback = O._numpy(O._output(verts, inputs, back, mask), inputs, None)    # without kernels
+        for a, b in zip(want[:2] + fallback[:2], got[:2] + fallback[:2]):
+            assert a.dtype == b.dtype and a.shape == b.shape
+            np.testing.assert_array_equal(b, a)
+        assert got[2] is True and got[3] == want[3]
+        assert O.float32_offsets(verts, inputs, want[0].copy(), matrix=back, still=mask)[2] is False
+    assert got[0][still].any(axis=1).all()          # (without the mask the still ones move)
+    kept_offsets, kept_output = O.float32_offsets(verts, inputs, None, matrix=back, still=still)[:2]
+    assert not kept_offsets[still].any() and np.array_equal(kept_output[still], inputs[still])
+    broken = verts.copy()
+    broken[321, 2] = np.inf
+    for fn in (O.float32_offsets, lambda *a, **k: O._numpy(O._output(*a[:2], **k), a[1], None)):
+        with pytest.raises(ValueError, match="non-finite offsets"):
+            fn(broken, inputs, matrix=back, still=still)
+    with pytest.raises(ValueError, match="still must be"):
+        O.float32_offsets(verts, inputs, None, matrix=back, still=still[:-1])
+
+
+def test_the_frame_passes_benchmark_compares_equal_outputs(kernels):
+    # `python -m benchmarks.frame_passes` times a frame's one pass against the three it replaced
+    # on the same frames of a Pipeline, and stops when their offsets or outputs differ.
+    from benchmarks import frame_passes
+    for still in (False, True):
+        report = frame_passes.run(subdivisions=3, frames=3, still=still)
+        assert report["kernels"] == "compiled" and (report["still"] > 0) == still
+        assert set(report["medians_ms"]) == {"evaluate", "solve", "one_pass", "three_passes"}

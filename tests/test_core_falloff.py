@@ -87,8 +87,11 @@ def test_nothing_moves_beyond_the_falloff_distance_and_outside_the_box_with_insi
         d = vp.falloff.box_distance(lat, v)
         far = d >= distance if mode == "FALLOFF" else d > vp.falloff.INSIDE_SLACK
         assert far.sum() > 20 and out.still == far.sum()
+        offsets, output = out.float32_offsets()[:2]                 # what a frame writes
+        assert not offsets[far].any() and np.array_equal(output[far], v[far])
         np.testing.assert_array_equal(out.positions[far], v[far])   # exactly in place
         assert np.abs(out.positions[~far] - v[~far]).max() > 1e-3
+        np.testing.assert_array_equal(offsets, (out.positions - v).astype(np.float32))
         assert abs(_volume(out.positions, f) / _volume(v, f) - 1) <= 1e-12
         if mode == "FALLOFF":
             assert out.falloff == int(((d > 0) & (d < distance)).sum())

@@ -395,13 +395,21 @@ def _smoke_solve(kernels, dtype):
     for given in (pos[::-1].copy(), pos[::-1].astype(np.float32)):
         off, out = np.empty((2, 3), np.float32), np.empty((2, 3), np.result_type(given.dtype, np.float32))
         written = (pos - given).astype(np.float32)
-        flag, changed, moved = kernels["float32_offsets"](pos, given, written, off, out, 0, 2)
-        _team_agrees(kernels, "float32_offsets", (pos, given, written, off, out), 2, (3, 4),
+        no_mat, no_still = np.zeros((0, 4)), np.zeros(0, np.bool_)
+        flag, changed, moved = kernels["float32_offsets"](pos, no_mat, given, no_still, written, off, out, 0, 2)
+        _team_agrees(kernels, "float32_offsets", (pos, no_mat, given, no_still, written, off, out), 2, (5, 6),
                      check=lambda got, r=(flag, changed, moved): (got[:, 0].max(), bool(got[:, 1].any()),
                                                                   got[:, 2].max()) == (r[0], bool(r[1]), r[2]))
         if not (flag == 0 and not changed and np.array_equal(off, written) and np.array_equal(out, given + written)
                 and moved == float(np.abs(written).max())):
             raise RuntimeError("the compiled offsets differ from NumPy's")
+        # mapped by a matrix, the second position kept at its input: as the map and then NumPy's
+        still = np.array([False, True])
+        kernels["float32_offsets"](pos, mat, given, still, np.zeros((0, 3), np.float32), off, out, 0, 2)
+        mapped = affine(pos, mat)
+        mapped[1] = given[1]
+        if not np.array_equal(off, (mapped - given).astype(np.float32)):
+            raise RuntimeError("the compiled offsets of mapped positions differ from NumPy's")
     L = np.array([[2.0, 0.0, 0.0], [1.0, 0.5, 0.0], [-1.0, 3.0, 4.0]])
     x, xt = np.empty(3), np.empty(3)
     kernels["triangular_solve"](L, np.arange(1.0, 4.0), x, False)

@@ -21,6 +21,7 @@ from .jacobian import jacobian_det
 from .lattice import Lattice
 from .linalg3 import affine, affine_inverse, det3
 from .mesh import Topology
+from .offsets import float32_offsets
 
 
 @dataclass(eq=False)
@@ -81,10 +82,42 @@ class FrameInputs:
     target_volumes: object = None
 
 
+class SlotOutput:
+    """A frame's output positions, as the solve leaves them: `verts` (V, 3) float64 in lattice
+    space, the map `back` (4, 4) into the object's space, and `still` (V,) bool or None: the
+    positions that no influence moves, whose output is exactly their input `inputs` (V, 3) (not
+    even the rounding of two transforms moves them). What a frame writes, its float32 offsets, is
+    made from these in one pass (`float32_offsets`); the object-space positions themselves only
+    when they are asked for (`positions`), as no frame in Blender needs them (docs/performance.md,
+    "A frame's own passes")."""
+
+    def __init__(self, verts, back, inputs, still=None):
+        self.verts, self.back, self.inputs, self.still = verts, back, inputs, still
+        self._positions = None
+
+    @property
+    def positions(self):
+        """(V, 3) float64 in the object's space (made on first use, then kept)."""
+        if self._positions is None:
+            out = _affine(self.verts, self.back)
+            if self.still is not None:
+                out[self.still] = np.asarray(self.inputs, dtype=np.float64)[self.still]
+            self._positions = out
+        return self._positions
+
+    def float32_offsets(self, written=None):
+        """`offsets.float32_offsets` of these positions against their inputs: (offsets (V, 3)
+        float32, output (V, 3), changed against `written`, the largest |offset|)."""
+        if self._positions is not None:
+            return float32_offsets(self._positions, self.inputs, written)
+        return float32_offsets(np.ascontiguousarray(self.verts, dtype=np.float64), self.inputs, written,
+                               matrix=self.back, still=self.still)
+
+
 @dataclass
 class FrameResult:
     """What one frame gives. Positions in the object's space, points in lattice space."""
-    positions: np.ndarray          #: (V, 3) float64 output of the slot
+    slot: SlotOutput               #: the slot's output positions (`positions`, `float32_offsets`)
     points: np.ndarray             #: (N, 3) control points that produce it (strength applied)
     input_volume: float = None     #: volume that reaches the slot (None without faces)
     volume: float = None           #: volume of the output
@@ -101,6 +134,17 @@ class FrameResult:
     #: the given target's (lattice space)
     target_given: bool = False     #: whether the given target_volumes were kept (not the input's)
     backend: str = None            #: the backend whose steps solved (`backends.py`; None: no solve)
+
+    @property
+    def positions(self):
+        """(V, 3) float64 output of the slot, in the object's space."""
+        return self.slot.positions
+
+    def float32_offsets(self, written=None):
+        """What the frame writes: (offsets (V, 3) float32 from the slot's input to its output,
+        output (V, 3) as Blender adds them up, whether they differ from `written`, the largest
+        |offset|), in one pass (`offsets.float32_offsets`)."""
+        return self.slot.float32_offsets(written)
 
 
 def _affine(points, mat):
@@ -127,13 +171,11 @@ def _affine(points, mat):
     return out
 
 
-def _keep_still(positions, inputs, influence):
-    """(positions with every position of zero influence set back to exactly its input, how many
-    there are): no influence, no motion, not even the rounding of two transforms."""
+def _still(influence):
+    """(the positions of no influence as a (V,) bool mask, or None where there are none; how many)."""
     still = influence == 0
-    if still.any():
-        positions[still] = np.asarray(inputs, dtype=np.float64)[still]
-    return positions, int(still.sum())
+    count = int(np.count_nonzero(still))
+    return (still if count else None), count
 
 
 class Pipeline:
@@ -180,7 +222,9 @@ class Pipeline:
         return tris is self._faces or self.topology.matches(tris)
 
     def _embed(self, inp, verts, influence):
-        """The binding of `verts` (lattice space): reused when every input of it is unchanged."""
+        """(the binding of `verts` (lattice space), whether it was made anew, `_still(influence)`):
+        reused when every input of it is unchanged (the influence among them, and with it which
+        positions stay still)."""
         lat = inp.lattice
         cage = isinstance(lat, Cage)
         # A lattice is known by its values; a cage (large) by identity: the caller keeps one
@@ -194,7 +238,7 @@ class Pipeline:
                 and (old[1] is verts or np.array_equal(old[1], verts))
                 and np.array_equal(old[2], influence) and self.topology is not None
                 and self._same_faces(inp.tris)):
-            return self.binding, False
+            return self.binding, False, old[3]
         compiled_layout = backends.compiled_layout(inp.backend)
         topology = self._topology(inp.tris, len(verts), compiled_layout)
         extra = dict(depth=inp.cage_depth, outside=inp.cage_outside) if cage else {}
@@ -203,8 +247,8 @@ class Pipeline:
                             topology=topology, use_compiled=compiled_layout, **extra)
         # `verts` is this pipeline's own array (`_lattice_space`, which never changes one it
         # returned): kept as it is, the next frame's unchanged positions are known by identity.
-        self._binding_key = (key, verts, influence.copy())
-        return self.binding, True
+        self._binding_key = (key, verts, influence.copy(), _still(influence))
+        return self.binding, True, self._binding_key[3]
 
     def evaluate(self, inp):
         """The `FrameResult` of `inp`. Raises ValueError for inputs that give no defined result."""
@@ -240,9 +284,10 @@ class Pipeline:
                 raise ValueError("no faces: the volume cannot be corrected")
             out = verts + influence[:, None] * lattice_eval.interpolate(lat, verts, P_used - grid)
             outside = lat.outside_count(verts) if isinstance(lat, Lattice) else 0
-            positions, still = _keep_still(_affine(out, back), inp.positions, influence)
-            return FrameResult(positions=positions, points=P_used, outside=outside, still=still)
-        binding, rebound = self._embed(inp, verts, influence)
+            still, n_still = _still(influence)
+            return FrameResult(slot=SlotOutput(out, back, inp.positions, still), points=P_used,
+                               outside=outside, still=n_still)
+        binding, rebound, (still, n_still) = self._embed(inp, verts, influence)
         # Without a solver of the caller's, and for the plain deformation, the CPU solves: the
         # registry's choice for the Backend setting on the CPU (NumPy alone for NUMPY).
         cpu_steps = backends.choose(backends.cpu_preference(inp.backend), binding)[0].steps
@@ -278,13 +323,13 @@ class Pipeline:
             sol = binding.solve(P_used, axes="", preserve_volume=False, steps=cpu_steps)
             out, used, volume, plain = sol.verts, P_used, sol.volume, sol.plain_volume
             backend = sol.backend
-        positions, still = _keep_still(_affine(out, back), inp.positions, influence)
         falloff = 0 if factor is None else int(((factor > 0) & (factor < 1)).sum())
         beyond = 0 if factor is None else int((factor == 0).sum())
-        return FrameResult(positions=positions, points=used, input_volume=binding.rest_volume,
+        return FrameResult(slot=SlotOutput(out, back, inp.positions, still), points=used,
+                           input_volume=binding.rest_volume,
                            volume=volume, plain_volume=plain, warnings=tuple(warnings),
                            binding=binding, rebound=rebound, solution=solution,
-                           outside=int(binding.n_outside), falloff=falloff, beyond=beyond, still=still,
+                           outside=int(binding.n_outside), falloff=falloff, beyond=beyond, still=n_still,
                            reference_volume=reference, target_given=target_given, backend=backend)
 
     @staticmethod

@@ -64,12 +64,12 @@ MUTATIONS = {
         "vpffd_addon/frame_kernels.py",
         "        if keep and still[v]:\n",
         "        if False:\n",
-        ["tests/test_core_compiled.py", "tests/test_core_falloff.py"], {}),
+        ["tests/test_core_compiled.py"], {}),
     "offsets-map-transposed": (
         "vpffd_addon/frame_kernels.py",
         "            q1 = p0 * m10 + p1 * m11 + p2 * m12 + m13\n",
         "            q1 = p0 * m01 + p1 * m11 + p2 * m21 + m13\n",
-        ["tests/test_core_compiled.py", "tests/test_core_falloff.py"], {}),
+        ["tests/test_core_compiled.py"], {}),
     "team-part-short": (
         "vpffd_addon/solve_kernels.py",
         "        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1])",

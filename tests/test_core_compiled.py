@@ -564,10 +564,10 @@ def test_the_offsets_made_from_the_solves_vertices_are_numpys_bit_for_bit(kernel
         want = O._numpy(expect, inputs, None)
         got = O.float32_offsets(verts, inputs, None, matrix=back, still=mask)
         fallback = O._numpy(O._output(verts, inputs, back, mask), inputs, None)    # without kernels
-        for a, b in zip(want[:2] + fallback[:2], got[:2] + fallback[:2]):
+        for a, b in zip(want[:2] + want[:2], got[:2] + fallback[:2]):
             assert a.dtype == b.dtype and a.shape == b.shape
             np.testing.assert_array_equal(b, a)
-        assert got[2] is True and got[3] == want[3]
+        assert got[2] is fallback[2] is True and got[3] == fallback[3] == want[3]
         assert O.float32_offsets(verts, inputs, want[0].copy(), matrix=back, still=mask)[2] is False
     assert got[0][still].any(axis=1).all()          # (without the mask the still ones move)
     kept_offsets, kept_output = O.float32_offsets(verts, inputs, None, matrix=back, still=still)[:2]
@@ -579,6 +579,8 @@ def test_the_offsets_made_from_the_solves_vertices_are_numpys_bit_for_bit(kernel
             fn(broken, inputs, matrix=back, still=still)
     with pytest.raises(ValueError, match="still must be"):
         O.float32_offsets(verts, inputs, None, matrix=back, still=still[:-1])
+    with pytest.raises(ValueError, match="matrix must be"):
+        O.float32_offsets(verts, inputs, None, matrix=back[:3])
 
 
 def test_the_frame_passes_benchmark_compares_equal_outputs(kernels):

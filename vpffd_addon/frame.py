@@ -97,7 +97,8 @@ class SlotOutput:
 
     @property
     def positions(self):
-        """(V, 3) float64 in the object's space (made on first use, then kept)."""
+        """(V, 3) float64 in the object's space, made from the frame's arrays on first use, then
+        kept (as `FrameInputs` says: do not change its arrays afterwards)."""
         if self._positions is None:
             out = _affine(self.verts, self.back)
             if self.still is not None:

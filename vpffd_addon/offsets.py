@@ -2,9 +2,9 @@
 stores), and what the next frame and the panel keep of them. One pass over the vertices by the
 compiled kernel where it is loaded (`frame_kernels.float32_offsets`), NumPy's passes otherwise,
 with the same results bit for bit. The pass also makes the output itself from the solve's
-vertices (the map back to the object's space, the positions no influence moves), so that a frame
-never writes the object-space positions to memory only to read them again (docs/performance.md,
-"A frame's own passes")."""
+vertices (the map back to the object's space, the positions no influence moves), so that with the
+kernel a frame never writes the object-space positions to memory only to read them again
+(docs/performance.md, "A frame's own passes")."""
 import numpy as np
 
 from . import compiled, parallel
@@ -34,8 +34,14 @@ def float32_offsets(positions, inputs, written=None, matrix=None, still=None):
     inputs = np.asarray(inputs)
     if positions.shape != inputs.shape or positions.ndim != 2 or positions.shape[1:] != (3,):
         raise ValueError(f"positions {positions.shape} and inputs {inputs.shape} must both be (V, 3)")
-    if still is not None and (still.shape != (len(inputs),) or still.dtype != np.bool_):
-        raise ValueError(f"still must be ({len(inputs)},) bool, got {still.shape} {still.dtype}")
+    if still is not None:
+        still = np.asarray(still)
+        if still.shape != (len(inputs),) or still.dtype != np.bool_:
+            raise ValueError(f"still must be ({len(inputs)},) bool, got {still.shape} {still.dtype}")
+    if matrix is not None:
+        matrix = np.asarray(matrix, dtype=np.float64)
+        if matrix.shape != (4, 4):
+            raise ValueError(f"matrix must be (4, 4), got {matrix.shape}")
     K = compiled.kernels()
     if (K is None or positions.dtype != np.float64 or inputs.dtype not in (np.float32, np.float64)
             or not (positions.flags.c_contiguous and inputs.flags.c_contiguous)):

@@ -75,7 +75,12 @@ def _lattice_rest(lat_ob, s):
     if grid is None or len(grid) != len(data.points):
         lattice = vp.Lattice(shape, interp, bounds=(s.lattice_rest_lo, s.lattice_rest_hi))  # Bind's
         return lattice, lattice.rest_points
-    return vp.Lattice(shape, interp, bounds=(grid.min(0), grid.max(0))), grid
+    lo, hi = grid.min(0), grid.max(0)
+    key = (shape, interp, lo.tobytes(), hi.tobytes())
+    if entry.get("lattice_key") != key:
+        # (kept while unchanged: a lattice makes its rest grid once, and a frame asks for it)
+        entry["lattice"], entry["lattice_key"] = vp.Lattice(shape, interp, bounds=(lo, hi)), key
+    return entry["lattice"], grid
 
 
 def _lattice_group(lat_ob, name):

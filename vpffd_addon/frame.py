@@ -193,10 +193,11 @@ class Pipeline:
         self.binding = None
         self._binding_key = None
         self._last_space = None
+        self._last_weights = None
 
     def clear(self):
         self.topology = self.binding = self._binding_key = self._faces = None
-        self._last_space = None
+        self._last_space = self._last_weights = None
 
     def _lattice_space(self, positions, M):
         """`positions` (V, 3) in lattice space, float64; the last frame's when its positions and
@@ -209,6 +210,27 @@ class Pipeline:
         verts = _affine(X, M)
         self._last_space = (M.copy(), X.copy(), verts)
         return verts
+
+    def _weights(self, weights, n):
+        """(n,) float64 weights of this pipeline's own (never changed once returned): the last
+        frame's very array while `weights` ((n,) or None for 1) are the same, so that the binding's
+        key knows the influence by identity (a frame compares the float32 weights Blender hands
+        over instead of converting and comparing float64 ones)."""
+        last = self._last_weights
+        if weights is None:
+            if last is not None and last[0] is None and len(last[1]) == n:
+                return last[1]
+            out = np.ones(n)
+        else:
+            w = np.asarray(weights)
+            if last is not None and last[0] is not None and last[0].shape == w.shape \
+                    and last[0].dtype == w.dtype and np.array_equal(last[0], w):
+                return last[1]
+            out = np.array(w, dtype=np.float64)
+            weights = w.copy()
+        out.flags.writeable = False
+        self._last_weights = (weights, out)
+        return out
 
     def _topology(self, tris, n_verts, use_compiled=True):
         t = self.topology
@@ -237,7 +259,7 @@ class Pipeline:
         if (old is not None and old[0] == key and self.binding is not None
                 and (not cage or self.binding.lattice is lat)
                 and (old[1] is verts or np.array_equal(old[1], verts))
-                and np.array_equal(old[2], influence) and self.topology is not None
+                and (old[2] is influence or np.array_equal(old[2], influence)) and self.topology is not None
                 and self._same_faces(inp.tris)):
             return self.binding, False, old[3]
         compiled_layout = backends.compiled_layout(inp.backend)
@@ -248,7 +270,9 @@ class Pipeline:
                             topology=topology, use_compiled=compiled_layout, **extra)
         # `verts` is this pipeline's own array (`_lattice_space`, which never changes one it
         # returned): kept as it is, the next frame's unchanged positions are known by identity.
-        self._binding_key = (key, verts, influence.copy(), _still(influence))
+        # (`influence` is the pipeline's own: its weights (`_weights`, known by identity next frame)
+        # or an array made from them in `evaluate` that no one else holds)
+        self._binding_key = (key, verts, influence, _still(influence))
         return self.binding, True, self._binding_key[3]
 
     def evaluate(self, inp):
@@ -262,7 +286,7 @@ class Pipeline:
         if P.shape != grid.shape:
             raise ValueError(f"points must have shape {grid.shape}, got {P.shape}")
         verts = self._lattice_space(inp.positions, M)
-        weights = np.ones(len(verts)) if inp.weights is None else np.asarray(inp.weights, np.float64)
+        weights = self._weights(inp.weights, len(verts))
         influence = weights
         if inp.lattice_weights is not None:
             if isinstance(lat, Cage):

@@ -1,6 +1,8 @@
 """The edges and boxes the viewport overlay draws (operators/overlay.py draws them): a lattice's
 grid, a cage's cells, the box where a lattice's falloff ends. Index pairs and corners only; the
 Blender layer moves them into world space and draws them."""
+import functools
+
 import numpy as np
 
 #: (12, 2) the edges of a box whose corner k sits at (k & 1, k >> 1 & 1, k >> 2 & 1) (`box_corners`).
@@ -9,7 +11,13 @@ BOX_EDGES = np.array([(k, k | 1 << a) for k in range(8) for a in range(3) if not
 
 def lattice_edges(shape):
     """(E, 2) int64 index pairs of neighbouring points of a lattice of `shape` (nu, nv, nw), u
-    fastest (Blender's point order)."""
+    fastest (Blender's point order); read-only, made once per shape (the overlay asks for them
+    on every frame)."""
+    return _lattice_edges(tuple(int(n) for n in shape))
+
+
+@functools.lru_cache(maxsize=32)
+def _lattice_edges(shape):
     nu, nv, nw = shape
     index = np.arange(nu * nv * nw).reshape(nw, nv, nu)
     pairs = []
@@ -18,7 +26,9 @@ def lattice_edges(shape):
             a = np.take(index, range(index.shape[axis] - 1), axis=axis).ravel()
             b = np.take(index, range(1, index.shape[axis]), axis=axis).ravel()
             pairs.append(np.stack([a, b], 1))
-    return np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
+    edges = np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
+    edges.flags.writeable = False
+    return edges
 
 
 def cage_edges(cells):

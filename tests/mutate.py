@@ -70,6 +70,11 @@ MUTATIONS = {
         "            q1 = p0 * m10 + p1 * m11 + p2 * m12 + m13\n",
         "            q1 = p0 * m01 + p1 * m11 + p2 * m21 + m13\n",
         ["tests/test_core_compiled.py"], {}),
+    "weights-kept-stale": (
+        "vpffd_addon/frame.py",
+        "                    and last[0].dtype == w.dtype and np.array_equal(last[0], w):\n",
+        "                    and last[0].dtype == w.dtype:\n",
+        ["tests/test_core_reembed.py"], {}),
     "team-part-short": (
         "vpffd_addon/solve_kernels.py",
         "        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1])",

@@ -122,6 +122,35 @@ def test_pipeline_results_do_not_depend_on_the_frame_before():
     assert not history[1].rebound or history[1].binding is not history[0].binding
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_pipeline_follows_the_weights_from_frame_to_frame(dtype):
+    # Weights as Blender hands them over (float32, a new array every frame, or the caller's one
+    # buffer refilled): a frame's result is a fresh pipeline's whatever weights came before,
+    # including equal values in a new array and changes made in place between frames.
+    v, f = _two_spheres()
+    lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    P = lat.rest_points * [1.0, 1.0, 0.7]
+    base = np.ones(len(v), np.float32)
+    base[: len(v) // 3] = 0.25
+    zeros = base.copy()
+    zeros[::7] = 0.0
+    sequence = [base, base * 0.5, base.copy(), zeros, base, zeros.copy(), None]
+    pipeline, buffer = vp.Pipeline(), base.copy()
+    for weights in sequence:
+        if weights is not None:
+            buffer[:] = weights            # (the same array as the frame before, refilled)
+        given = None if weights is None else buffer
+
+        def inputs(w):
+            return vp.FrameInputs(positions=v, tris=f, lattice=lat, points=P, matrix=np.eye(4),
+                                  weights=w, axes="XYZ", dtype=dtype)
+        got = pipeline.evaluate(inputs(given))
+        alone = vp.Pipeline().evaluate(inputs(None if weights is None else weights.copy()))
+        assert np.array_equal(got.positions, alone.positions) and got.still == alone.still
+        assert np.array_equal(got.float32_offsets()[0], alone.float32_offsets()[0])
+    assert alone.still == 0 and vp.Pipeline().evaluate(inputs(zeros)).still == int((zeros == 0).sum())
+
+
 def test_pipeline_keeps_scale_times_the_volume_that_comes_in():
     v, f = vp.icosphere(3, 0.6)
     lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))

@@ -35,11 +35,11 @@ def float32_offsets(positions, inputs, written=None, matrix=None, still=None):
     if positions.shape != inputs.shape or positions.ndim != 2 or positions.shape[1:] != (3,):
         raise ValueError(f"positions {positions.shape} and inputs {inputs.shape} must both be (V, 3)")
     if still is not None:
-        still = np.asarray(still)
+        still = np.ascontiguousarray(still)
         if still.shape != (len(inputs),) or still.dtype != np.bool_:
             raise ValueError(f"still must be ({len(inputs)},) bool, got {still.shape} {still.dtype}")
     if matrix is not None:
-        matrix = np.asarray(matrix, dtype=np.float64)
+        matrix = np.ascontiguousarray(matrix, dtype=np.float64)
         if matrix.shape != (4, 4):
             raise ValueError(f"matrix must be (4, 4), got {matrix.shape}")
     K = compiled.kernels()
@@ -52,9 +52,8 @@ def float32_offsets(positions, inputs, written=None, matrix=None, still=None):
     offsets = np.empty((V, 3), np.float32)
     output = np.empty((V, 3), np.result_type(inputs.dtype, np.float32))
     parts = parallel.split(V, V) if V else [slice(0, 0)]
-    mat = _NO_MATRIX if matrix is None else np.ascontiguousarray(matrix, dtype=np.float64)
-    got = compiled.over("float32_offsets", parts, positions, mat, inputs,
-                        _NO_STILL if still is None else np.ascontiguousarray(still),
+    got = compiled.over("float32_offsets", parts, positions, _NO_MATRIX if matrix is None else matrix,
+                        inputs, _NO_STILL if still is None else still,
                         written if same else _NONE, offsets, output, returns=3, kernels=K)
     for flag, _, _ in got:
         if flag:

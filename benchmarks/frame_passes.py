@@ -2,14 +2,15 @@
 (`vpffd_addon/frame.py`, `offsets.py`): only the lattice's points move from frame to frame, as
 in the stack benchmark's *lattice points* scene. No Blender: NumPy, and numba where installed.
 
-    python -m benchmarks.frame_passes [--subdivisions 7] [--frames 41] [--still]
+    python -m benchmarks.frame_passes [--subdivisions 7] [--frames 41] [--still] [--moving]
 
 Per frame (medians): `Pipeline.evaluate` whole and its solve (`Solution.seconds`), and what a
 frame writes, the float32 offsets: in one pass from the solve's vertices (`FrameResult.
 float32_offsets`: the map back to the object's space, the positions that no influence moves, the
 offsets) against the three passes it replaces (the map back, `frame._affine`; the still positions
 set back; the offsets of the mapped positions, `offsets.float32_offsets`), both on the same
-frames. Prints JSON on stdout, a table on stderr.
+frames. `--moving`: the mesh moves a little through the lattice on every frame, so that every
+frame embeds it anew (the stack benchmark's *mesh moves*). Prints JSON on stdout, a table on stderr.
 """
 import argparse
 import json
@@ -65,13 +66,15 @@ def _three_passes(result, positions, weights, written):
     return offsets.float32_offsets(mapped, positions, written)
 
 
-def run(subdivisions=7, frames=41, still=False):
+def run(subdivisions=7, frames=41, still=False, moving=False):
     kernels = "compiled" if compiled.load() else f"NumPy ({compiled.why()})"
     positions, f, lat, M, weights = _scene(subdivisions, still)
     pipeline = vp.Pipeline()
     rows = {"evaluate": [], "solve": [], "one_pass": [], "three_passes": []}
     written = None
     for k in range(frames + 3):                 # (the first three: binding, warm caches)
+        if moving:      # (the mesh moves through the lattice: a new embedding every frame)
+            positions = positions + np.float32([0.002, 0.001, 0.0]) * np.float32(1 if k % 40 < 20 else -1)
         inp = vp.FrameInputs(positions=positions, tris=f, lattice=lat, points=_points(lat, k % 30),
                              matrix=M, weights=weights, axes="XYZ", dtype=np.float32)
         t0 = time.perf_counter()
@@ -91,7 +94,7 @@ def run(subdivisions=7, frames=41, still=False):
             for name, ms in (("evaluate", t1 - t0), ("solve", result.solution.seconds),
                              ("one_pass", timed["one_pass_ms"]), ("three_passes", timed["three_passes_ms"])):
                 rows[name].append(1e3 * ms)
-    return {"vertices": len(positions), "lattice": list(LATTICE), "kernels": kernels,
+    return {"vertices": len(positions), "lattice": list(LATTICE), "kernels": kernels, "moving": moving,
             "frames": frames, "still": int((weights == 0).sum()), "medians_ms": {k: statistics.median(v) for k, v in rows.items()}}
 
 
@@ -99,6 +102,7 @@ def markdown(report):
     m = report["medians_ms"]
     return (f"{report['vertices']:,} vertices, {'x'.join(map(str, report['lattice']))} B-spline lattice, "
             f"XYZ, float32, {report['kernels']} kernels, {report['still']:,} vertices of weight 0, "
+            f"{'the mesh moving through the lattice, ' if report.get('moving') else ''}"
             f"medians of {report['frames']} frames:\n\n"
             "| evaluate | its solve | evaluate besides the solve | offsets in one pass | "
             "the three passes it replaces |\n|---|---|---|---|---|\n"
@@ -111,8 +115,10 @@ def main(argv=None):
     ap.add_argument("--subdivisions", type=int, default=7)
     ap.add_argument("--frames", type=int, default=41)
     ap.add_argument("--still", action="store_true", help="a tenth of the vertices of weight 0 (they stay still)")
+    ap.add_argument("--moving", action="store_true",
+                    help="the mesh moves through the lattice: embedded anew on every frame")
     args = ap.parse_args(argv)
-    report = run(args.subdivisions, args.frames, args.still)
+    report = run(args.subdivisions, args.frames, args.still, args.moving)
     print(markdown(report), file=sys.stderr)
     print(json.dumps(report, indent=1))
     return 0

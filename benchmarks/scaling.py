@@ -10,7 +10,8 @@ threads). The core alone (NumPy, and numba where it is installed), no Blender:
 `--team-parts K` runs the passes on numba's own threads from K parts on (`compiled.TEAM_PARTS`;
 a K above the cores keeps them on the Python worker threads, as before numba's were used);
 `--passes` adds where a solve's time goes on 1, 2, 4, ... threads: each pass, the transposed
-product's reduction (one thread) and the rest (the closed forms, NumPy on one thread).
+product's reduction (one thread) and the rest (the closed forms, NumPy on one thread); on two
+threads or more, a forward pass and the pass after it run in one hand-over (`forward_then_next`).
 """
 import argparse
 import collections
@@ -82,13 +83,19 @@ def passes(subdivisions=7, rounds=21, threads=None):
     cores = parallel.WORKERS
     threads = threads or sorted({1, 2, 4, 8, 12, 16, cores} & set(range(1, cores + 1)))
     spent = collections.Counter()
-    over, transpose = compiled.over, compiled.CompiledSteps.transpose
+    over, transpose, counted = compiled.over, compiled.CompiledSteps.transpose, parallel.run_counted
 
     def timed_over(name, parts, *args, **kw):
         t0 = time.perf_counter()
         got = over(name, parts, *args, **kw)
         spent[name] += time.perf_counter() - t0
         return got
+
+    def timed_counted(*args):
+        # (a forward pass and the pass after it in one hand-over: `CompiledSteps._refresh_then`)
+        t0 = time.perf_counter()
+        counted(*args)
+        spent["forward_then_next"] += time.perf_counter() - t0
 
     def timed_transpose(self, *args):
         t0 = time.perf_counter()
@@ -103,24 +110,28 @@ def passes(subdivisions=7, rounds=21, threads=None):
             b.solve(P, axes="XYZ")
             spent.clear()
             compiled.over, compiled.CompiledSteps.transpose = timed_over, timed_transpose
+            parallel.run_counted = timed_counted
             t0 = time.perf_counter()
             for _ in range(rounds):
                 b.solve(P, axes="XYZ")
             total = 1e3 * (time.perf_counter() - t0) / rounds
             compiled.over, compiled.CompiledSteps.transpose = over, transpose
+            parallel.run_counted = counted
             row = {k: 1e3 * t / rounds for k, t in spent.items()}
             row["rest"] = total - sum(row.values())
             row["solve"] = total
             out[n] = row
     finally:
         compiled.over, compiled.CompiledSteps.transpose = over, transpose
+        parallel.run_counted = counted
         parallel.set_workers(previous)
     return out
 
 
 def passes_markdown(rows):
     """The passes' table as Markdown."""
-    names = [k for k in next(iter(rows.values())) if k not in ("rest", "solve")] + ["rest", "solve"]
+    names = [k for k in dict.fromkeys(k for row in rows.values() for k in row)
+             if k not in ("rest", "solve")] + ["rest", "solve"]
     lines = ["| threads | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
     for n, row in rows.items():
         lines.append(f"| {n} | " + " | ".join(f"{row.get(k, 0.0):.2f} ms" for k in names) + " |")

@@ -80,6 +80,16 @@ MUTATIONS = {
         "        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1])",
         "        _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1] - 1)",
         ["tests/test_core_compiled.py", "-k", "any_number_of_threads_is_the_same"], {}),
+    "fused-skip-lost": (
+        "vpffd_addon/compiled.py",
+        "        for j in np.flatnonzero(sync[head:head + n] == 0):   # (ran out of spins at the barrier)\n",
+        "        for j in []:\n",
+        ["tests/test_core_compiled.py", "-k", "hand_over"], {}),
+    "fused-no-barrier": (
+        "vpffd_addon/atomics.py",
+        "    return wait_count(sync, ARRIVED, n, spins)\n",
+        "    return True\n",
+        ["tests/test_core_compiled.py"], {}),
     "compiled-ring-unclosed": (
         "vpffd_addon/solve_kernels.py",
         "        acc += pm * q0 - qm * p0\n",

@@ -278,6 +278,79 @@ def test_a_solve_on_any_number_of_threads_is_the_same_bit_for_bit(kernels, dtype
     assert cpu_while_asleep(0.3) < 20.0         # numba's idle threads wait without spinning
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_two_passes_in_one_hand_over_are_the_two_passes_bit_for_bit(kernels, dtype, monkeypatch):
+    # On the Python threads a forward pass and the pass after it run in one hand-over per part,
+    # with a barrier between them (`CompiledSteps._refresh_then`). However the parts meet there,
+    # a solve and its islands' joint steps must be the two passes' bit for bit: when every part
+    # waits long enough; when they wait one look only (the parts that arrive first skip their
+    # second pass and the caller runs it); when the caller stops looking for the parts done at
+    # once (it then sleeps on the workers); and with the fused passes switched off.
+    monkeypatch.setattr(parallel, "cores", lambda: max(2, os.cpu_count() or 1))   # (2 parts even on 1 core)
+    monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)      # (and on a small mesh)
+    calls = {}
+    K = kernels.kernels()
+    for name in [k for k in K if k.startswith("forward_then_")]:
+        def counted(*args, _fn=K[name], _name=name):
+            calls[_name] = calls.get(_name, 0) + 1
+            return _fn(*args)
+        monkeypatch.setitem(K, name, counted)
+    previous = parallel.set_workers(2)
+    spins = dict(compiled._state["spins"])
+    try:
+        b, P = _problem(dtype, n_sub=5, islands=True)
+        assert len(b.block_parts) == len(b.vertex_parts) == 2
+        results = {}
+        for way, set_spins in (("off", None), ("wait", spins), ("skip", {**spins, "barrier": 1}),
+                               ("sleep", {**spins, "done": 1}), ("neither", {"barrier": 1, "done": 1})):
+            monkeypatch.setitem(compiled._state, "spins", set_spins)
+            before = sum(calls.values())
+            one, many = b.solve(P, axes="XYZ"), b.solve(P, axes="XYZ", islands=True)
+            assert (sum(calls.values()) > before) == (way != "off"), way
+            results[way] = [one.verts, one.points, many.verts, many.points, np.asarray(many.island_volumes)]
+    finally:
+        parallel.set_workers(previous)
+    assert set(calls) == {"forward_then_gradient_transpose", "forward_then_gradient_transpose3",
+                          "forward_then_to_verts"}, calls
+    for way in ("wait", "skip", "sleep", "neither"):
+        for a, ref in zip(results[way], results["off"]):
+            np.testing.assert_array_equal(a, ref, err_msg=way)
+
+
+def test_solves_in_two_threads_at_once_share_the_workers_and_finish(kernels, monkeypatch):
+    # Two solves handing their parts to the same worker at once (as two objects evaluated in
+    # parallel by Blender): each part that waits at its barrier for a worker still busy with the
+    # other solve gives up after its spins, so both finish, with the results of one at a time.
+    import threading
+    monkeypatch.setattr(parallel, "cores", lambda: max(2, os.cpu_count() or 1))
+    monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)
+    previous = parallel.set_workers(2)
+    try:
+        problems = [_problem(np.float32, n_sub=5, seed=s) for s in (5, 6)]
+    finally:
+        parallel.set_workers(previous)
+    alone = [b.solve(P, axes="XYZ").verts for b, P in problems]
+    got, errors = [[None] * 8 for _ in problems], []
+
+    def solve(i):
+        try:
+            b, P = problems[i]
+            for r in range(8):
+                got[i][r] = b.solve(P, axes="XYZ").verts
+        except Exception as exc:        # (reported below: a thread's failure must fail the test)
+            errors.append(exc)
+    threads = [threading.Thread(target=solve, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert not any(t.is_alive() for t in threads), "two solves at once did not finish"
+    assert not errors, errors
+    for i, want in enumerate(alone):
+        for verts in got[i]:
+            np.testing.assert_array_equal(verts, want)
+
+
 def test_bezier_and_one_point_axes_bind_with_numpy(kernels):
     assert compiled.bind_kernels(vp.Lattice((4, 4, 4), "BEZIER")) is None
     assert compiled.bind_kernels(vp.Lattice((4, 1, 4))) is None
@@ -587,7 +660,7 @@ def test_the_frame_passes_benchmark_compares_equal_outputs(kernels):
     # `python -m benchmarks.frame_passes` times a frame's one pass against the three it replaced
     # on the same frames of a Pipeline, and stops when their offsets or outputs differ.
     from benchmarks import frame_passes
-    for still in (False, True):
-        report = frame_passes.run(subdivisions=3, frames=3, still=still)
+    for still, moving in ((False, False), (True, False), (False, True)):
+        report = frame_passes.run(subdivisions=3, frames=3, still=still, moving=moving)
         assert report["kernels"] == "compiled" and (report["still"] > 0) == still
         assert set(report["medians_ms"]) == {"evaluate", "solve", "one_pass", "three_passes"}

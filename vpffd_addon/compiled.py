@@ -19,7 +19,7 @@ import threading
 
 import numpy as np
 
-from . import frame_kernels, layout_kernels, parallel, solve_kernels
+from . import atomics, frame_kernels, layout_kernels, parallel, solve_kernels
 from .bases import axis_cells
 from .linalg3 import affine
 from .mesh import connected_components, is_closed
@@ -34,6 +34,10 @@ NUMPY_RANGE = ((1, 24), (2, 5))
 
 _state = {"kernels": None, "why": "not loaded (vpffd_addon.compiled.load() compiles the kernels)",
           "teams": None}
+#: How long a fused pass's part waits at its barrier for the other parts, and the calling thread
+#: for the parts to be done, spinning, before taking the slow, sure way (microseconds; a worker's
+#: wake takes 30-80 us on the project's two-core machines): docs/performance.md, "Fewer hand-overs".
+SPIN_US = {"barrier": 2000, "done": 1000}
 
 
 def why():
@@ -96,6 +100,7 @@ def load(cache=True, teams=None):
     try:
         kernels = _compile(numba, cache)
         _smoke(kernels)
+        _state["spins"] = {what: atomics.spins_for(kernels["wait_count"], us) for what, us in SPIN_US.items()}
     except Exception as exc:
         _state["why"] = f"the kernels did not compile ({type(exc).__name__}: {exc})"
         return False
@@ -127,8 +132,9 @@ def _compile(numba, cache):
     njit_sums = numba.njit(cache=cache, nogil=True, fastmath=fast, error_model="numpy")
     inline = numba.njit(inline="always", fastmath=fast, error_model="numpy")
 
-    return {**layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline),
-            **frame_kernels.define(njit)}
+    sync = atomics.define(numba, njit)
+    return {**layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline, sync),
+            **frame_kernels.define(njit), "wait_count": sync["wait_count"]}
 
 
 def _add_teams(numba, cache, kernels):
@@ -425,6 +431,40 @@ def _smoke_solve(kernels, dtype):
                  check=lambda got: got[:, 0].sum() == 0)
     if not np.array_equal(out, X.T.astype(float)):
         raise RuntimeError("the compiled vertices differ from the slots'")
+    forward = (params, coef, cell, shape, D, x0)
+    _fused_agrees(kernels, forward, X, "gradient_transpose", (6, 7, 8), 1, lambda Y: (
+        Y[1], Y[2], start, entries, ring, params, x0[0], np.empty(4), np.empty((1, 64)), np.empty((2, 1))))
+    _fused_agrees(kernels, forward, X, "gradient_transpose3", (6, 7, 8), 1, lambda Y: (
+        Y, start, entries, ring, params, x0, np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))))
+    _fused_agrees(kernels, forward, X, "to_verts", (4,), 4, lambda Y: (
+        Y, slot, np.zeros((1, 3)), np.zeros(4, np.int64), np.empty((4, 3))))
+
+
+def _fused_agrees(kernels, forward, X, name, outs, stop, make_args):
+    """Run `forward_then_<name>`, where loaded, on `forward`'s arguments (the forward pass's up to
+    its components, all three here) with fresh coordinates Y and make_args(Y) (the second pass's,
+    over 0..stop): in one part, and in two parts one after the other in this thread, whose first
+    runs out of spins at its barrier and leaves its second pass undone (as a part whose partner
+    never came would). Each must make X and what `name` made of make_args(X) (the arguments at
+    `outs`, and to_verts' count), and count its parts as `CompiledSteps._refresh_then` reads them:
+    so the fused passes compile now, not in a frame."""
+    fused = kernels.get("forward_then_" + name)
+    if fused is None:
+        return
+    want = make_args(X)
+    returned = kernels[name](*want, 0, stop) or 0
+    head = atomics.HEAD
+    for parts, ran in ((((0, 1, 0, stop),), [1]), (((0, 0, 0, 0), (0, 1, 0, stop)), [0, 1])):
+        Y = np.empty_like(X)
+        args = make_args(Y)
+        n = len(parts)
+        sync = atomics.new_sync(n)
+        for k, (b0, b1, v0, v1) in enumerate(parts):
+            fused(*forward, np.arange(3, dtype=np.int64), Y, *args, sync, k, 100, b0, b1, v0, v1)
+        if not (np.array_equal(Y, X) and all(np.array_equal(args[i], want[i]) for i in outs)
+                and list(sync[head:head + n]) == ran and sync[atomics.DONE] == n
+                and sync[head + 2 * n - 1] == returned):
+            raise RuntimeError(f"the compiled forward pass and {name} in one call differ from the two calls")
 
 
 def _team_agrees(kernels, name, args, stop, outs, edges=None, check=None):
@@ -513,6 +553,40 @@ class CompiledSteps(Steps):
         comps = np.array(components, np.int64)
         self._blocks("forward", self.params, self.coef, b.block_cell, self.shape, Dt, self.x0, comps, self.X)
 
+    def _refresh_then(self, components, D, name, *args, parts=None):
+        """`refresh(components, D)`, then kernel `name`(*args) over `parts` (default: the block
+        parts): what each part returned. Where forward passes are due and both passes go to the
+        Python threads, the two run in one hand-over per part (`solve_kernels.forward_then_<name>`,
+        with a barrier between them, and the calling thread sees the parts done without being
+        woken: docs/performance.md, "Fewer hand-overs"). The same calls either way, so the same
+        results bit for bit."""
+        b, K = self.b, self.K
+        parts = b.block_parts if parts is None else parts
+        stale = [c for c in components if not self.fresh[c]]
+        fused = K.get("forward_then_" + name)
+        n = len(parts)
+        spins = _state.get("spins")
+        # (not where parts would wait at the barrier for threads that have no core to run on)
+        if (not stale or fused is None or spins is None or not 2 <= n <= parallel.cores()
+                or len(b.block_parts) != n or teams("forward", b.block_parts, K) or teams(name, parts, K)):
+            self.refresh(components, D)
+            return [got[0] if got else None for got in over(name, parts, *args, returns=1, kernels=K)] \
+                if name == "to_verts" else over(name, parts, *args, kernels=K)
+        Dt = np.ascontiguousarray(D.T, dtype=self.X.dtype)
+        forward = (self.params, self.coef, b.block_cell, self.shape, Dt, self.x0, np.array(stale, np.int64), self.X)
+        blocks, sync = b.block_parts, atomics.new_sync(n)
+        barrier, done = spins["barrier"], spins["done"]
+
+        def part(j):
+            fused(*forward, *args, sync, j, barrier, blocks[j].start, blocks[j].stop, parts[j].start, parts[j].stop)
+        parallel.run_counted(part, range(n), lambda: K["wait_count"](sync, atomics.DONE, n, done))
+        for c in stale:
+            self.fresh[c] = True
+        head = atomics.HEAD
+        for j in np.flatnonzero(sync[head:head + n] == 0):   # (ran out of spins at the barrier)
+            sync[head + n + j] = K[name](*args, parts[j].start, parts[j].stop) or 0
+        return list(sync[head + n:])
+
     def _pass(self, xp, xq, x0a):
         b = self.b
         start, inc, ring = incidence(b)
@@ -522,18 +596,22 @@ class CompiledSteps(Steps):
 
     def axis_gradient(self, axis, D):
         a1, a2 = (axis + 1) % 3, (axis + 2) % 3
-        self.refresh((a1, a2), D)
-        return self._pass(self.X[a1], self.X[a2], self.x0[axis])
+        b = self.b
+        start, inc, ring = incidence(b)
+        out = _Gradient(b.x0.shape[1], self.n_blocks)
+        self._refresh_then((a1, a2), D, "gradient_transpose", self.X[a1], self.X[a2], start, inc, ring,
+                           self.params, self.x0[axis], out.g, out.M, out.sums)
+        return out
 
     def axis_gradients(self, D):
         """The three axis gradients at the same coordinates, from one pass over the faces
         (`solve_kernels.gradient_transpose3`): (g_x, g_y, g_z) as `axis_gradient` gives them."""
         b = self.b
-        self.refresh((0, 1, 2), D)
         start, inc, ring = incidence(b)
         n_slots = b.x0.shape[1]
         g, M, sums = np.empty((3, n_slots)), np.empty((3, self.n_blocks, 64)), np.empty((3, 2, self.n_blocks))
-        self._blocks("gradient_transpose3", self.X, start, inc, ring, self.params, self.x0, g, M, sums)
+        self._refresh_then((0, 1, 2), D, "gradient_transpose3", self.X, start, inc, ring, self.params, self.x0,
+                           g, M, sums)
         out = []
         for a in range(3):
             one = _Gradient.__new__(_Gradient)
@@ -583,12 +661,12 @@ class CompiledSteps(Steps):
         self.X += (e[:, None] * field).astype(self.X.dtype)
 
     def verts(self, D):
-        self.refresh((0, 1, 2), D)
         b = self.b
         out = np.empty((b.n_verts, 3))
         rows = vertex_rows(b)
-        bad = over("to_verts", b.vertex_parts, self.X, b.slot, b.island_origin, rows, out, returns=1, kernels=self.K)
-        self._checked = (out, sum(part[0] for part in bad) == 0)
+        bad = self._refresh_then((0, 1, 2), D, "to_verts", self.X, b.slot, b.island_origin, rows, out,
+                                 parts=b.vertex_parts)
+        self._checked = (out, sum(bad) == 0)
         return out
 
     def finite(self, verts=None):

@@ -45,10 +45,8 @@ class _Worker:
             done_event.set()
 
 
-def run(fn, parts):
-    """[fn(p) for p in parts]; part 0 runs in the calling thread, part k in worker k."""
-    if len(parts) == 1:
-        return [fn(parts[0])]
+def _hand_out(fn, parts):
+    """Part k (k >= 1) to worker k: the boxes their results will be in."""
     with _lock:
         while len(_workers) < len(parts) - 1:
             _workers.append(_Worker(len(_workers) + 1))
@@ -57,7 +55,35 @@ def run(fn, parts):
         box = [threading.Event()]
         _workers[k].jobs.put((fn, p, box))
         pending.append(box)
+    return pending
+
+
+def run(fn, parts):
+    """[fn(p) for p in parts]; part 0 runs in the calling thread, part k in worker k."""
+    if len(parts) == 1:
+        return [fn(parts[0])]
+    pending = _hand_out(fn, parts)
     results = [fn(parts[0])]
+    return results + _collect(pending)
+
+
+def run_counted(fn, parts, finished):
+    """fn(p) for every part, as `run` hands them out, for kernels that count the parts done
+    themselves and leave their results in arrays: after part 0, `finished()` (a bounded wait in
+    compiled code on that count, True once every part is done) spares this thread its wait for
+    the last worker to wake it (docs/performance.md, "Fewer hand-overs"); where it returns False,
+    this thread waits for the workers as `run` does (and raises what a part raised)."""
+    if len(parts) == 1:
+        fn(parts[0])
+        return
+    pending = _hand_out(fn, parts)
+    fn(parts[0])
+    if not finished():
+        _collect(pending)
+
+
+def _collect(pending):
+    results = []
     for box in pending:
         box[0].wait()
         ok, value = box[1]

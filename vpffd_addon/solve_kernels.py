@@ -50,16 +50,24 @@ def constants(interpolation, dtype):
     return c.astype(dtype)
 
 
-def define(njit, njit_sums, inline):
+def define(njit, njit_sums, inline, sync=None):
     """The kernels, compiled by `njit` and `njit_sums` (helpers by `inline`, which numba inlines
     into their callers: a loop over arrays handed to a called function is not vectorised, as the
     compiler cannot tell that they do not overlap): {name: function}. The helpers are bound in
     this module's namespace, where the kernels find them by name (numba caches a kernel that
     calls a global function; one that calls a function it closes over is compiled anew in every
-    process)."""
+    process), and so is every kernel as `_k_<name>`, for the teams and the fused passes. `sync`:
+    `atomics.define`'s functions; with them, the fused passes (`forward_then_<name>`) too."""
+    space = globals()
     for name in _HELPERS:
-        globals()[name] = inline(_SOURCE[name])
-    return {name: (njit_sums if kind == "njit_sums" else njit)(_SOURCE[name]) for name, kind in _KERNELS.items()}
+        space[name] = inline(_SOURCE[name])
+    kernels = {name: (njit_sums if kind == "njit_sums" else njit)(_SOURCE[name]) for name, kind in _KERNELS.items()}
+    for name, kernel in kernels.items():
+        space["_k_" + name] = kernel
+    if sync is not None:
+        space["_arrive_and_wait"], space["_fetch_add"] = sync["arrive_and_wait"], sync["fetch_add"]
+        kernels.update({name: njit(_SOURCE[name]) for name in _FUSED})
+    return kernels
 
 
 def same_cell(block_cell, a, b):
@@ -630,6 +638,48 @@ def to_verts_team(edges, got, X, slot, origin, vertex_row, out):
         got[k, 0] = _k_to_verts(X, slot, origin, vertex_row, out, edges[k], edges[k + 1])  # noqa: F821
 
 
+# Two passes in one hand-over per part (`compiled.CompiledSteps._refresh_then`; docs/performance.md,
+# "Fewer hand-overs"): the forward pass over blocks b0..b1-1, then, once every part has made its
+# coordinates (the second pass reads its neighbours' slots, which other parts make), the second
+# pass over its range (blocks b0..b1-1, or vertices v0..v1-1 for to_verts). `sync`: the counters of
+# `atomics.py` for n parts, (2 + 2 n,) int64: a part that runs out of `spins` at the barrier skips
+# its second pass (sync[2 + k] stays 0; the caller then runs it), and every part adds itself to
+# the parts done as its last act. The arguments: the forward pass's, then the second pass's (the
+# same arrays where they are), then the counters and ranges. The same calls as the two passes on
+# their own: the same results.
+
+def forward_then_gradient_transpose(params, c, block_cell, shape, D, x0, comps, X,
+                                    xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums,
+                                    sync, k, spins, b0, b1, v0, v1):
+    _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
+    if _arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
+        _k_gradient_transpose(xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums, v0, v1)  # noqa: F821
+        sync[2 + k] = 1
+    _fetch_add(sync, 1, 1)  # noqa: F821
+
+
+def forward_then_gradient_transpose3(params, c, block_cell, shape, D, x0, comps, X,
+                                     X2, inc_start, inc, ring, params2, x02, g, M, sums,
+                                     sync, k, spins, b0, b1, v0, v1):
+    _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
+    if _arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
+        _k_gradient_transpose3(X2, inc_start, inc, ring, params2, x02, g, M, sums, v0, v1)  # noqa: F821
+        sync[2 + k] = 1
+    _fetch_add(sync, 1, 1)  # noqa: F821
+
+
+def forward_then_to_verts(params, c, block_cell, shape, D, x0, comps, X,
+                          Xv, slot, origin, vertex_row, out,
+                          sync, k, spins, b0, b1, v0, v1):
+    _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
+    n = (sync.shape[0] - 2) // 2
+    if _arrive_and_wait(sync, n, spins):  # noqa: F821
+        sync[2 + n + k] = _k_to_verts(Xv, slot, origin, vertex_row, out, v0, v1)  # noqa: F821
+        sync[2 + k] = 1
+    _fetch_add(sync, 1, 1)  # noqa: F821
+
+
+_FUSED = ("forward_then_gradient_transpose", "forward_then_gradient_transpose3", "forward_then_to_verts")
 _TEAMS = ("forward", "gradient_transpose", "gradient_transpose3", "slot_incidence_fill", "to_verts")
 _HELPERS = ("same_cell", "taps", "change_basis", "block_powers", "block_moments", "triangular_solve",
             "fan_gradient", "cell_polynomial")
@@ -640,4 +690,4 @@ _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient
             "slot_incidence_fill": "njit",
             "to_verts": "njit"}
 #: The plain functions, as written (`define` rebinds the helpers' names to compiled ones).
-_SOURCE = {name: globals()[name] for name in _HELPERS + tuple(_KERNELS)}
+_SOURCE = {name: globals()[name] for name in _HELPERS + tuple(_KERNELS) + _FUSED}

@@ -82,7 +82,7 @@ MUTATIONS = {
         ["tests/test_core_compiled.py", "-k", "any_number_of_threads_is_the_same"], {}),
     "fused-skip-lost": (
         "vpffd_addon/compiled.py",
-        "        for j in np.flatnonzero(sync[head:head + n] == 0):   # (ran out of spins at the barrier)\n",
+        "        for j in skipped:           # (ran out of spins at the barrier)\n",
         "        for j in []:\n",
         ["tests/test_core_compiled.py", "-k", "hand_over"], {}),
     "fused-no-barrier": (

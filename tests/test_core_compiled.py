@@ -288,6 +288,7 @@ def test_two_passes_in_one_hand_over_are_the_two_passes_bit_for_bit(kernels, dty
     # once (it then sleeps on the workers); and with the fused passes switched off.
     monkeypatch.setattr(parallel, "cores", lambda: max(2, os.cpu_count() or 1))   # (2 parts even on 1 core)
     monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)      # (and on a small mesh)
+    monkeypatch.setattr(compiled, "FUSED_MISSES", 10 ** 9)         # (fused however often they fall back)
     calls = {}
     K = kernels.kernels()
     for name in [k for k in K if k.startswith("forward_then_")]:
@@ -304,6 +305,7 @@ def test_two_passes_in_one_hand_over_are_the_two_passes_bit_for_bit(kernels, dty
         for way, set_spins in (("off", None), ("wait", spins), ("skip", {**spins, "barrier": 1}),
                                ("sleep", {**spins, "done": 1}), ("neither", {"barrier": 1, "done": 1})):
             monkeypatch.setitem(compiled._state, "spins", set_spins)
+            monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0, "passes": 0, "missed": 0})   # (no rest left from the way before)
             before = sum(calls.values())
             one, many = b.solve(P, axes="XYZ"), b.solve(P, axes="XYZ", islands=True)
             assert (sum(calls.values()) > before) == (way != "off"), way
@@ -315,6 +317,51 @@ def test_two_passes_in_one_hand_over_are_the_two_passes_bit_for_bit(kernels, dty
     for way in ("wait", "skip", "sleep", "neither"):
         for a, ref in zip(results[way], results["off"]):
             np.testing.assert_array_equal(a, ref, err_msg=way)
+
+
+def test_fused_passes_that_keep_running_out_of_spins_rest(kernels, monkeypatch):
+    # Where the fused passes keep falling back (threads without cores of their own), spinning only
+    # takes time from them: after `FUSED_MISSES` such passes in a row, the next `FUSED_REST` run one
+    # hand-over per pass. Every fused pass is made a miss here by a caller that reports having
+    # had to sleep on the workers; the results stay the same bit for bit.
+    monkeypatch.setattr(parallel, "cores", lambda: max(2, os.cpu_count() or 1))
+    monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)
+    monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0, "passes": 0, "missed": 0})
+    previous = parallel.set_workers(2)
+    try:
+        b, P = _problem(np.float32, n_sub=5)
+    finally:
+        parallel.set_workers(previous)
+    want = b.solve(P, axes="XYZ").verts
+    monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0, "passes": 0, "missed": 0})
+    counted, calls = parallel.run_counted, []
+
+    def slept(*args):
+        calls.append(1)
+        counted(*args)
+        return False
+    monkeypatch.setattr(parallel, "run_counted", slept)
+    for _ in range(3):      # (four fused passes a solve would be twelve)
+        np.testing.assert_array_equal(b.solve(P, axes="XYZ").verts, want)
+    assert len(calls) == compiled.FUSED_MISSES
+    assert compiled._fused["rest"] == compiled.FUSED_REST - (12 - compiled.FUSED_MISSES)
+
+
+def test_a_containers_cpu_quota_caps_the_cores():
+    files = {"/sys/fs/cgroup/cpu.max": "200000 100000\n"}
+    assert parallel.cpu_quota(files.get) == 2.0
+    assert parallel.cpu_quota({"/sys/fs/cgroup/cpu.max": "max 100000\n"}.get) is None
+    v1 = {"/sys/fs/cgroup/cpu/cpu.cfs_quota_us": "150000\n", "/sys/fs/cgroup/cpu/cpu.cfs_period_us": "100000\n"}
+    assert parallel.cpu_quota(v1.get) == 1.5
+    assert parallel.cpu_quota({**v1, "/sys/fs/cgroup/cpu/cpu.cfs_quota_us": "-1\n"}.get) is None
+    assert parallel.cpu_quota({}.get) is None
+    assert parallel.cpu_quota({"/sys/fs/cgroup/cpu.max": "garbage"}.get) is None
+    quota = parallel.cpu_quota()
+    try:
+        affinity = len(os.sched_getaffinity(0))
+    except AttributeError:
+        affinity = os.cpu_count()
+    assert parallel.cores() == (affinity if quota is None else max(1, min(affinity, int(np.ceil(quota)))))
 
 
 def test_solves_in_two_threads_at_once_share_the_workers_and_finish(kernels, monkeypatch):

@@ -38,6 +38,12 @@ _state = {"kernels": None, "why": "not loaded (vpffd_addon.compiled.load() compi
 #: for the parts to be done, spinning, before taking the slow, sure way (microseconds; a worker's
 #: wake takes 30-80 us on the project's two-core machines): docs/performance.md, "Fewer hand-overs".
 SPIN_US = {"barrier": 2000, "done": 1000}
+#: After this many fused passes in a row that ran out of spins (a part at its barrier, or the
+#: caller looking for the parts done), the next `FUSED_REST` passes run one hand-over per pass:
+#: where the threads do not get cores of their own (a busy machine, two solves at once, a
+#: container given less CPU time than it has cores) spinning would only take time from them.
+FUSED_MISSES, FUSED_REST = 3, 200
+_fused = {"misses": 0, "rest": 0, "passes": 0, "missed": 0}    # (the last two: counts for benchmarks)
 
 
 def why():
@@ -566,8 +572,11 @@ class CompiledSteps(Steps):
         fused = K.get("forward_then_" + name)
         n = len(parts)
         spins = _state.get("spins")
+        resting = _fused["rest"] > 0
+        if resting:
+            _fused["rest"] -= 1
         # (not where parts would wait at the barrier for threads that have no core to run on)
-        if (not stale or fused is None or spins is None or not 2 <= n <= parallel.cores()
+        if (not stale or fused is None or spins is None or resting or not 2 <= n <= parallel.cores()
                 or len(b.block_parts) != n or teams("forward", b.block_parts, K) or teams(name, parts, K)):
             self.refresh(components, D)
             return [got[0] if got else None for got in over(name, parts, *args, returns=1, kernels=K)] \
@@ -579,12 +588,19 @@ class CompiledSteps(Steps):
 
         def part(j):
             fused(*forward, *args, sync, j, barrier, blocks[j].start, blocks[j].stop, parts[j].start, parts[j].stop)
-        parallel.run_counted(part, range(n), lambda: K["wait_count"](sync, atomics.DONE, n, done))
+        seen = parallel.run_counted(part, range(n), lambda: K["wait_count"](sync, atomics.DONE, n, done))
         for c in stale:
             self.fresh[c] = True
         head = atomics.HEAD
-        for j in np.flatnonzero(sync[head:head + n] == 0):   # (ran out of spins at the barrier)
+        skipped = np.flatnonzero(sync[head:head + n] == 0)
+        for j in skipped:           # (ran out of spins at the barrier)
             sync[head + n + j] = K[name](*args, parts[j].start, parts[j].stop) or 0
+        missed = not seen or len(skipped) > 0
+        _fused["misses"] = _fused["misses"] + 1 if missed else 0
+        _fused["passes"] += 1
+        _fused["missed"] += missed
+        if _fused["misses"] >= FUSED_MISSES:
+            _fused["misses"], _fused["rest"] = 0, FUSED_REST
         return list(sync[head + n:])
 
     def _pass(self, xp, xq, x0a):

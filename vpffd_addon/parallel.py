@@ -6,17 +6,47 @@ always goes to the same thread (part 0 to the caller), so the data a thread wrot
 still in its core's cache when it reads it in the next. An idle worker waits on its queue: it
 holds no core between frames.
 """
+import math
 import os
 import queue
 import threading
 
 
 def cores():
-    """The cores this process may run on (its affinity where the platform tells it)."""
+    """The cores this process may run on: its affinity where the platform tells it, and no more
+    than a Linux container's CPU quota allows (a render farm's container may see every core of
+    its host and be given the time of two: threads beyond that only wait on each other)."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        n = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+        n = os.cpu_count() or 1
+    quota = cpu_quota()
+    return max(1, min(n, math.ceil(quota)) if quota is not None else n)
+
+
+def _read(path):
+    try:
+        with open(path, encoding="ascii") as fh:
+            return fh.read()
+    except (OSError, ValueError):
+        return None
+
+
+def cpu_quota(read=_read):
+    """The CPUs' worth of time a Linux cgroup's quota gives this process (e.g. 2.0), or None where
+    none is set or none can be read: cgroup v2's cpu.max ("200000 100000", or "max 100000"), else
+    v1's cpu.cfs_quota_us over cpu.cfs_period_us (-1: none). `read(path)`: the file's text or None."""
+    text = read("/sys/fs/cgroup/cpu.max")
+    try:
+        if text is not None:
+            quota, period = text.split()[:2]
+            return None if quota == "max" else max(float(quota) / float(period), 1e-3)
+        quota, period = read("/sys/fs/cgroup/cpu/cpu.cfs_quota_us"), read("/sys/fs/cgroup/cpu/cpu.cfs_period_us")
+        if quota is None or period is None or float(quota) <= 0:
+            return None
+        return max(float(quota) / float(period), 1e-3)
+    except (ValueError, ZeroDivisionError):
+        return None
 
 
 #: Threads a binding splits its work over: every core the process may use.
@@ -72,14 +102,17 @@ def run_counted(fn, parts, finished):
     themselves and leave their results in arrays: after part 0, `finished()` (a bounded wait in
     compiled code on that count, True once every part is done) spares this thread its wait for
     the last worker to wake it (docs/performance.md, "Fewer hand-overs"); where it returns False,
-    this thread waits for the workers as `run` does (and raises what a part raised)."""
+    this thread waits for the workers as `run` does (and raises what a part raised). Returns
+    whether `finished()` saw them done."""
     if len(parts) == 1:
         fn(parts[0])
-        return
+        return True
     pending = _hand_out(fn, parts)
     fn(parts[0])
-    if not finished():
-        _collect(pending)
+    if finished():
+        return True
+    _collect(pending)
+    return False
 
 
 def _collect(pending):

@@ -86,8 +86,8 @@ MUTATIONS = {
         "        for j in []:\n",
         ["tests/test_core_compiled.py", "-k", "hand_over"], {}),
     "fused-no-barrier": (
-        "vpffd_addon/atomics.py",
-        "    return wait_count(sync, ARRIVED, n, spins)\n",
+        "vpffd_addon/solve_kernels.py",
+        "    return wait_count(sync, 0, n, looks)\n",
         "    return True\n",
         ["tests/test_core_compiled.py"], {}),
     "compiled-ring-unclosed": (

@@ -286,7 +286,7 @@ def test_two_passes_in_one_hand_over_are_the_two_passes_bit_for_bit(kernels, dty
     # waits long enough; when they wait one look only (the parts that arrive first skip their
     # second pass and the caller runs it); when the caller stops looking for the parts done at
     # once (it then sleeps on the workers); and with the fused passes switched off.
-    monkeypatch.setattr(parallel, "cores", lambda: max(2, os.cpu_count() or 1))   # (2 parts even on 1 core)
+    monkeypatch.setattr(parallel, "CORES", max(2, parallel.CORES))   # (2 parts even on 1 core)
     monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)      # (and on a small mesh)
     monkeypatch.setattr(compiled, "FUSED_MISSES", 10 ** 9)         # (fused however often they fall back)
     calls = {}
@@ -324,7 +324,7 @@ def test_fused_passes_that_keep_running_out_of_spins_rest(kernels, monkeypatch):
     # takes time from them: after `FUSED_MISSES` such passes in a row, the next `FUSED_REST` run one
     # hand-over per pass. Every fused pass is made a miss here by a caller that reports having
     # had to sleep on the workers; the results stay the same bit for bit.
-    monkeypatch.setattr(parallel, "cores", lambda: max(2, os.cpu_count() or 1))
+    monkeypatch.setattr(parallel, "CORES", max(2, parallel.CORES))
     monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)
     monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0, "passes": 0, "missed": 0})
     previous = parallel.set_workers(2)
@@ -345,6 +345,18 @@ def test_fused_passes_that_keep_running_out_of_spins_rest(kernels, monkeypatch):
         np.testing.assert_array_equal(b.solve(P, axes="XYZ").verts, want)
     assert len(calls) == compiled.FUSED_MISSES
     assert compiled._fused["rest"] == compiled.FUSED_REST - (12 - compiled.FUSED_MISSES)
+
+
+def test_the_spin_calibration_stays_bounded_on_a_coarse_clock(kernels, monkeypatch):
+    # The waits of the fused passes are counted in looks, calibrated once against the clock: a
+    # clock that ticks once a millisecond (some virtual machines') must not read a loop as
+    # instantaneous and turn a 2 ms wait into minutes.
+    from vpffd_addon import atomics
+    real = atomics.time.perf_counter
+    monkeypatch.setattr(atomics.time, "perf_counter", lambda: float(np.floor(real() * 1e3)) / 1e3)
+    got = atomics.spins_for(kernels.kernels()["wait_count"], {"barrier": 2000, "done": 1})
+    assert 1000 <= got["barrier"] <= atomics.MOST_LOOKS_PER_US * 2000
+    assert got["done"] == 1000 or got["done"] <= atomics.MOST_LOOKS_PER_US
 
 
 def test_a_containers_cpu_quota_caps_the_cores():
@@ -369,7 +381,7 @@ def test_solves_in_two_threads_at_once_share_the_workers_and_finish(kernels, mon
     # parallel by Blender): each part that waits at its barrier for a worker still busy with the
     # other solve gives up after its spins, so both finish, with the results of one at a time.
     import threading
-    monkeypatch.setattr(parallel, "cores", lambda: max(2, os.cpu_count() or 1))
+    monkeypatch.setattr(parallel, "CORES", max(2, parallel.CORES))
     monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)
     previous = parallel.set_workers(2)
     try:

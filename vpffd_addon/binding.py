@@ -575,7 +575,9 @@ def finish(b, rel, tris, labels, n_slots, faces=None):
     face_vol, sums = faces if faces is not None else slot_faces(b, rel, n_slots)
     b.vertex_parts = parallel.split(b.n_verts, b.n_verts)
     b.rest_island_volumes = sums[0]
-    b.rest_volume = float(face_vol.sum())
+    # (one island: its sum is this one, made the same way; a mesh moving through the lattice pays
+    # for every pass over its faces on every frame)
+    b.rest_volume = float(sums[0][0]) if len(sums[0]) == 1 else float(face_vol.sum())
     # The volume's rounding in the binding's precision: a few ulps of every face's term. An open
     # mesh far from the lattice centre, or a very small one, can enclose less than that.
     b.rest_volume_noise = 4 * float(np.finfo(b.dtype).eps) * sums[1]

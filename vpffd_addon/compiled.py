@@ -81,7 +81,7 @@ def load(cache=True, teams=None):
     `TEAM_PARTS` cores or more (on fewer, a frame never has that many parts, and their compile
     would double the first one's time for nothing)."""
     if teams is None:
-        teams = parallel.cores() >= TEAM_PARTS
+        teams = parallel.CORES >= TEAM_PARTS
     if _state["kernels"] is None and _state.get("loaded") is not None:
         _state["kernels"], _state["why"] = _state["loaded"], None
     if _state["kernels"] is not None:
@@ -106,7 +106,7 @@ def load(cache=True, teams=None):
     try:
         kernels = _compile(numba, cache)
         _smoke(kernels)
-        _state["spins"] = {what: atomics.spins_for(kernels["wait_count"], us) for what, us in SPIN_US.items()}
+        _state["spins"] = atomics.spins_for(kernels["wait_count"], SPIN_US)
     except Exception as exc:
         _state["why"] = f"the kernels did not compile ({type(exc).__name__}: {exc})"
         return False
@@ -138,9 +138,8 @@ def _compile(numba, cache):
     njit_sums = numba.njit(cache=cache, nogil=True, fastmath=fast, error_model="numpy")
     inline = numba.njit(inline="always", fastmath=fast, error_model="numpy")
 
-    sync = atomics.define(numba, njit)
-    return {**layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline, sync),
-            **frame_kernels.define(njit), "wait_count": sync["wait_count"]}
+    return {**layout_kernels.define(njit), **solve_kernels.define(njit, njit_sums, inline, atomics.define()),
+            **frame_kernels.define(njit)}
 
 
 def _add_teams(numba, cache, kernels):
@@ -575,9 +574,11 @@ class CompiledSteps(Steps):
         resting = _fused["rest"] > 0
         if resting:
             _fused["rest"] -= 1
-        # (not where parts would wait at the barrier for threads that have no core to run on)
-        if (not stale or fused is None or spins is None or resting or not 2 <= n <= parallel.cores()
-                or len(b.block_parts) != n or teams("forward", b.block_parts, K) or teams(name, parts, K)):
+        # (not where parts would wait at the barrier for threads that have no core to run on, nor
+        # while another thread's pass is with the workers: its parts would come first)
+        if (not stale or fused is None or spins is None or resting or not 2 <= n <= parallel.CORES
+                or parallel.busy() or len(b.block_parts) != n or teams("forward", b.block_parts, K)
+                or teams(name, parts, K)):
             self.refresh(components, D)
             return [got[0] if got else None for got in over(name, parts, *args, returns=1, kernels=K)] \
                 if name == "to_verts" else over(name, parts, *args, kernels=K)

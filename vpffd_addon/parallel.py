@@ -49,8 +49,10 @@ def cpu_quota(read=_read):
         return None
 
 
+#: The cores this process may use (`cores()`, read once: it opens files where a cgroup is set).
+CORES = cores()
 #: Threads a binding splits its work over: every core the process may use.
-WORKERS = cores()
+WORKERS = CORES
 #: Below this many vertices per part, handing work to another thread costs more than it saves
 #: (a hand-over costs tens of microseconds; a compiled pass over 8,192 slots about as much).
 MIN_VERTS_PER_PART = 8192
@@ -75,9 +77,20 @@ class _Worker:
             done_event.set()
 
 
+_handed = [0]       # passes whose parts are with the workers now (`busy`)
+
+
+def busy():
+    """Whether some thread's pass is with the workers now (two solves at once: a pass that waits
+    for its parts at a barrier would wait for the other solve's)."""
+    return _handed[0] > 0
+
+
 def _hand_out(fn, parts):
-    """Part k (k >= 1) to worker k: the boxes their results will be in."""
+    """Part k (k >= 1) to worker k: the boxes their results will be in. The caller hands the pass
+    back with `_done()` once it stops waiting for it."""
     with _lock:
+        _handed[0] += 1
         while len(_workers) < len(parts) - 1:
             _workers.append(_Worker(len(_workers) + 1))
     pending = []
@@ -93,8 +106,11 @@ def run(fn, parts):
     if len(parts) == 1:
         return [fn(parts[0])]
     pending = _hand_out(fn, parts)
-    results = [fn(parts[0])]
-    return results + _collect(pending)
+    try:
+        results = [fn(parts[0])]
+        return results + _collect(pending)
+    finally:
+        _done()
 
 
 def run_counted(fn, parts, finished):
@@ -108,11 +124,19 @@ def run_counted(fn, parts, finished):
         fn(parts[0])
         return True
     pending = _hand_out(fn, parts)
-    fn(parts[0])
-    if finished():
-        return True
-    _collect(pending)
-    return False
+    try:
+        fn(parts[0])
+        if finished():
+            return True
+        _collect(pending)
+        return False
+    finally:
+        _done()
+
+
+def _done():
+    with _lock:
+        _handed[0] -= 1
 
 
 def _collect(pending):
@@ -130,7 +154,10 @@ def set_workers(n=None):
     """Split new bindings over n threads (None: every core), e.g. to measure how a kernel scales.
     Returns the previous count. Bindings made before keep their parts."""
     global WORKERS
-    previous, WORKERS = WORKERS, cores() if n is None else max(1, int(n))
+    global CORES
+    if n is None:
+        CORES = cores()
+    previous, WORKERS = WORKERS, CORES if n is None else max(1, int(n))
     return previous
 
 

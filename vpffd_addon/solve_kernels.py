@@ -65,7 +65,9 @@ def define(njit, njit_sums, inline, sync=None):
     for name, kernel in kernels.items():
         space["_k_" + name] = kernel
     if sync is not None:
-        space["_arrive_and_wait"], space["_fetch_add"] = sync["arrive_and_wait"], sync["fetch_add"]
+        space.update(sync)
+        space["arrive_and_wait"] = inline(_SOURCE["arrive_and_wait"])
+        kernels["wait_count"] = space["wait_count"] = njit(_SOURCE["wait_count"])
         kernels.update({name: njit(_SOURCE[name]) for name in _FUSED})
     return kernels
 
@@ -648,24 +650,39 @@ def to_verts_team(edges, got, X, slot, origin, vertex_row, out):
 # same arrays where they are), then the counters and ranges. The same calls as the two passes on
 # their own: the same results.
 
+def wait_count(sync, i, n, looks):
+    # Whether sync[i] reached n within `looks` (`atomics.spins_for` says how many take how long).
+    for _ in range(looks):
+        if load_acquire(sync, i) >= n:  # noqa: F821 (`atomics.define`'s, bound by `define`)
+            return True
+        spin_hint()  # noqa: F821
+    return False
+
+
+def arrive_and_wait(sync, n, looks):
+    # This part has made its first pass: count it, then wait (bounded) for the other parts.
+    fetch_add(sync, 0, 1)  # noqa: F821
+    return wait_count(sync, 0, n, looks)
+
+
 def forward_then_gradient_transpose(params, c, block_cell, shape, D, x0, comps, X,
                                     xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums,
                                     sync, k, spins, b0, b1, v0, v1):
     _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
-    if _arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
+    if arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
         _k_gradient_transpose(xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums, v0, v1)  # noqa: F821
         sync[2 + k] = 1
-    _fetch_add(sync, 1, 1)  # noqa: F821
+    fetch_add(sync, 1, 1)  # noqa: F821
 
 
 def forward_then_gradient_transpose3(params, c, block_cell, shape, D, x0, comps, X,
                                      X2, inc_start, inc, ring, params2, x02, g, M, sums,
                                      sync, k, spins, b0, b1, v0, v1):
     _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
-    if _arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
+    if arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
         _k_gradient_transpose3(X2, inc_start, inc, ring, params2, x02, g, M, sums, v0, v1)  # noqa: F821
         sync[2 + k] = 1
-    _fetch_add(sync, 1, 1)  # noqa: F821
+    fetch_add(sync, 1, 1)  # noqa: F821
 
 
 def forward_then_to_verts(params, c, block_cell, shape, D, x0, comps, X,
@@ -673,10 +690,10 @@ def forward_then_to_verts(params, c, block_cell, shape, D, x0, comps, X,
                           sync, k, spins, b0, b1, v0, v1):
     _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
     n = (sync.shape[0] - 2) // 2
-    if _arrive_and_wait(sync, n, spins):  # noqa: F821
+    if arrive_and_wait(sync, n, spins):  # noqa: F821
         sync[2 + n + k] = _k_to_verts(Xv, slot, origin, vertex_row, out, v0, v1)  # noqa: F821
         sync[2 + k] = 1
-    _fetch_add(sync, 1, 1)  # noqa: F821
+    fetch_add(sync, 1, 1)  # noqa: F821
 
 
 _FUSED = ("forward_then_gradient_transpose", "forward_then_gradient_transpose3", "forward_then_to_verts")
@@ -690,4 +707,5 @@ _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient
             "slot_incidence_fill": "njit",
             "to_verts": "njit"}
 #: The plain functions, as written (`define` rebinds the helpers' names to compiled ones).
-_SOURCE = {name: globals()[name] for name in _HELPERS + tuple(_KERNELS) + _FUSED}
+_SOURCE = {name: globals()[name] for name in _HELPERS + tuple(_KERNELS) + _FUSED
+           + ("wait_count", "arrive_and_wait")}

@@ -305,7 +305,7 @@ def test_two_passes_in_one_hand_over_are_the_two_passes_bit_for_bit(kernels, dty
         for way, set_spins in (("off", None), ("wait", spins), ("skip", {**spins, "barrier": 1}),
                                ("sleep", {**spins, "done": 1}), ("neither", {"barrier": 1, "done": 1})):
             monkeypatch.setitem(compiled._state, "spins", set_spins)
-            monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0, "passes": 0, "missed": 0})   # (no rest left from the way before)
+            monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0})   # (no rest left from the way before)
             before = sum(calls.values())
             one, many = b.solve(P, axes="XYZ"), b.solve(P, axes="XYZ", islands=True)
             assert (sum(calls.values()) > before) == (way != "off"), way
@@ -326,14 +326,14 @@ def test_fused_passes_that_keep_running_out_of_spins_rest(kernels, monkeypatch):
     # had to sleep on the workers; the results stay the same bit for bit.
     monkeypatch.setattr(parallel, "CORES", max(2, parallel.CORES))
     monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)
-    monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0, "passes": 0, "missed": 0})
+    monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0})
     previous = parallel.set_workers(2)
     try:
         b, P = _problem(np.float32, n_sub=5)
     finally:
         parallel.set_workers(previous)
     want = b.solve(P, axes="XYZ").verts
-    monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0, "passes": 0, "missed": 0})
+    monkeypatch.setattr(compiled, "_fused", {"misses": 0, "rest": 0})
     counted, calls = parallel.run_counted, []
 
     def slept(*args):

@@ -43,7 +43,7 @@ SPIN_US = {"barrier": 2000, "done": 1000}
 #: where the threads do not get cores of their own (a busy machine, two solves at once, a
 #: container given less CPU time than it has cores) spinning would only take time from them.
 FUSED_MISSES, FUSED_REST = 3, 200
-_fused = {"misses": 0, "rest": 0, "passes": 0, "missed": 0}    # (the last two: counts for benchmarks)
+_fused = {"misses": 0, "rest": 0}
 
 
 def why():
@@ -558,13 +558,13 @@ class CompiledSteps(Steps):
         comps = np.array(components, np.int64)
         self._blocks("forward", self.params, self.coef, b.block_cell, self.shape, Dt, self.x0, comps, self.X)
 
-    def _refresh_then(self, components, D, name, *args, parts=None):
+    def _refresh_then(self, components, D, name, *args, parts=None, returns=0):
         """`refresh(components, D)`, then kernel `name`(*args) over `parts` (default: the block
-        parts): what each part returned. Where forward passes are due and both passes go to the
-        Python threads, the two run in one hand-over per part (`solve_kernels.forward_then_<name>`,
-        with a barrier between them, and the calling thread sees the parts done without being
-        woken: docs/performance.md, "Fewer hand-overs"). The same calls either way, so the same
-        results bit for bit."""
+        parts): what each part returned (`returns` 1: a number; 0: nothing). Where forward passes
+        are due and both passes go to the Python threads, the two run in one hand-over per part
+        (`solve_kernels.forward_then_<name>`, with a barrier between them, and the calling thread
+        sees the parts done without being woken: docs/performance.md, "Fewer hand-overs"). The
+        same calls either way, so the same results bit for bit."""
         b, K = self.b, self.K
         parts = b.block_parts if parts is None else parts
         stale = [c for c in components if not self.fresh[c]]
@@ -580,8 +580,8 @@ class CompiledSteps(Steps):
                 or parallel.busy() or len(b.block_parts) != n or teams("forward", b.block_parts, K)
                 or teams(name, parts, K)):
             self.refresh(components, D)
-            return [got[0] if got else None for got in over(name, parts, *args, returns=1, kernels=K)] \
-                if name == "to_verts" else over(name, parts, *args, kernels=K)
+            got = over(name, parts, *args, returns=returns, kernels=K)
+            return [r[0] for r in got] if returns else got
         Dt = np.ascontiguousarray(D.T, dtype=self.X.dtype)
         forward = (self.params, self.coef, b.block_cell, self.shape, Dt, self.x0, np.array(stale, np.int64), self.X)
         blocks, sync = b.block_parts, atomics.new_sync(n)
@@ -596,29 +596,24 @@ class CompiledSteps(Steps):
         skipped = np.flatnonzero(sync[head:head + n] == 0)
         for j in skipped:           # (ran out of spins at the barrier)
             sync[head + n + j] = K[name](*args, parts[j].start, parts[j].stop) or 0
-        missed = not seen or len(skipped) > 0
-        _fused["misses"] = _fused["misses"] + 1 if missed else 0
-        _fused["passes"] += 1
-        _fused["missed"] += missed
+        _fused["misses"] = _fused["misses"] + 1 if not seen or len(skipped) else 0
         if _fused["misses"] >= FUSED_MISSES:
             _fused["misses"], _fused["rest"] = 0, FUSED_REST
         return list(sync[head + n:])
 
-    def _pass(self, xp, xq, x0a):
+    def _pass(self, xp, xq, x0a, components=(), D=None):
+        """The gradient pass on xp, xq, after the forward passes that `components` of X are due
+        (in one hand-over with it where they can be)."""
         b = self.b
         start, inc, ring = incidence(b)
         out = _Gradient(b.x0.shape[1], self.n_blocks)
-        self._blocks("gradient_transpose", xp, xq, start, inc, ring, self.params, x0a, out.g, out.M, out.sums)
+        self._refresh_then(components, D, "gradient_transpose", xp, xq, start, inc, ring, self.params, x0a,
+                           out.g, out.M, out.sums)
         return out
 
     def axis_gradient(self, axis, D):
         a1, a2 = (axis + 1) % 3, (axis + 2) % 3
-        b = self.b
-        start, inc, ring = incidence(b)
-        out = _Gradient(b.x0.shape[1], self.n_blocks)
-        self._refresh_then((a1, a2), D, "gradient_transpose", self.X[a1], self.X[a2], start, inc, ring,
-                           self.params, self.x0[axis], out.g, out.M, out.sums)
-        return out
+        return self._pass(self.X[a1], self.X[a2], self.x0[axis], (a1, a2), D)
 
     def axis_gradients(self, D):
         """The three axis gradients at the same coordinates, from one pass over the faces
@@ -682,7 +677,7 @@ class CompiledSteps(Steps):
         out = np.empty((b.n_verts, 3))
         rows = vertex_rows(b)
         bad = self._refresh_then((0, 1, 2), D, "to_verts", self.X, b.slot, b.island_origin, rows, out,
-                                 parts=b.vertex_parts)
+                                 parts=b.vertex_parts, returns=1)
         self._checked = (out, sum(bad) == 0)
         return out
 

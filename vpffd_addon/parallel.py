@@ -40,9 +40,9 @@ def cpu_quota(read=_read):
     try:
         if text is not None:
             quota, period = text.split()[:2]
-            return None if quota == "max" else max(float(quota) / float(period), 1e-3)
-        quota, period = read("/sys/fs/cgroup/cpu/cpu.cfs_quota_us"), read("/sys/fs/cgroup/cpu/cpu.cfs_period_us")
-        if quota is None or period is None or float(quota) <= 0:
+        else:
+            quota, period = read("/sys/fs/cgroup/cpu/cpu.cfs_quota_us"), read("/sys/fs/cgroup/cpu/cpu.cfs_period_us")
+        if quota is None or period is None or quota == "max" or float(quota) <= 0:
             return None
         return max(float(quota) / float(period), 1e-3)
     except (ValueError, ZeroDivisionError):
@@ -153,8 +153,7 @@ def _collect(pending):
 def set_workers(n=None):
     """Split new bindings over n threads (None: every core), e.g. to measure how a kernel scales.
     Returns the previous count. Bindings made before keep their parts."""
-    global WORKERS
-    global CORES
+    global WORKERS, CORES
     if n is None:
         CORES = cores()
     previous, WORKERS = WORKERS, CORES if n is None else max(1, int(n))

@@ -283,26 +283,43 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
         raise ValueError("depth applies to cages only; a Lattice has no refinement")
     b = Binding()
     kernels = compiled.bind_kernels(lattice) if use_compiled else None
-    verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype, topology, kernels)
+    # (the compiled layout makes the coordinates relative to the volume origins in its first pass)
+    verts, tris, s, labels, rel = prepare(b, lattice, rest_verts, tris, influence, dtype, topology, kernels,
+                                          relative=not kernels)
     V = b.n_verts
-    taps = _lattice_taps(lattice, verts, kernels)
 
     # Sort by (island, cell); cut every run into blocks of `bs` slots (the last one padded). The
     # cell is the unclamped one of a local axis (in [-3, n + 2]): vertices outside the lattice
     # whose clamped taps differ do not share a run, so a run's slots share their taps exactly
     # (what the compiled solve needs, `solve_kernels`). A Bernstein or one-point axis has one.
-    dims = [n + 6 if len(tap) > 2 else 1 for n, tap in zip(lattice.shape, taps)]
+    # With the kernels every axis is local.
+    taps = None if kernels else _lattice_taps(lattice, verts, None)
+    dims = ([n + 6 for n in lattice.shape] if kernels else
+            [n + 6 if len(tap) > 2 else 1 for n, tap in zip(lattice.shape, taps)])
     n_cells = dims[0] * dims[1] * dims[2]
     n_keys = n_cells * b.n_islands
+    run_cells = None                # (the unclamped cell of every run, (runs, 3), where local)
+    if kernels:
+        verts = np.ascontiguousarray(verts)
+        # (the row of `island_origin` of each vertex, as `compiled.vertex_rows`)
+        rows = _NO_LABELS if len(b.island_origin) == 1 else np.ascontiguousarray(labels, np.int64)
     if kernels and n_keys <= max(4 * V, 1 << 16):
-        # A counting sort over the keys (the same order), which also gives the runs.
+        # A counting sort over the keys (the same order), which also gives the runs; the cells
+        # are made in its first pass (with the coordinates relative to the volume origins), and
+        # every run's cells read back from its key.
         islands = np.ascontiguousarray(labels, np.int64) if b.n_islands > 1 else _NO_LABELS
-        start, order = layout.counting_order(kernels, taps[0][2], taps[1][2], taps[2][2], islands,
-                                             np.array(dims, np.int64), n_keys)
+        start, order, rel = layout.cell_order(kernels, verts, lattice, islands, np.array(dims, np.int64),
+                                              n_keys, b.island_origin, rows)
         run_len = np.diff(start)
-        run_start = start[:-1][run_len > 0]
-        run_len = run_len[run_len > 0]
+        keyed = np.flatnonzero(run_len > 0)
+        run_start = start[:-1][keyed]
+        run_len = run_len[keyed]
+        cell = keyed % n_cells
+        run_cells = np.stack([cell % dims[0], cell // dims[0] % dims[1], cell // (dims[0] * dims[1])], 1) - 3
     else:
+        if kernels:
+            taps = _lattice_taps(lattice, verts, kernels)
+            rel = layout.relative(kernels, verts, b.island_origin, rows)
         cells = [tap[2] + 3 if len(tap) > 2 else np.zeros(V, np.int64) for tap in taps]
         cell = (cells[2] * dims[1] + cells[1]) * dims[0] + cells[0]
         key = cell if b.n_islands == 1 else labels * n_cells + cell
@@ -319,7 +336,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     n_slots = n_blocks * bs
     b.block_size = bs
     runs = (order, run_start, run_len, first_block)
-    local = all(len(tap) > 2 for tap in taps)
+    local = kernels is not None or all(len(tap) > 2 for tap in taps)
     # For what is made on first use (`_LAZY`): the positions and weights as bound, copied where
     # they are the caller's own arrays (which the caller may change after the bind).
     b.source = tuple(a.copy() if given is not None and np.may_share_memory(a, given) else a
@@ -338,8 +355,12 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     # Control points of each run (blocks of a run share them), from the run's first vertex.
     Ku, Kv, Kw = (tap_count(n, kind) for n, kind in zip(lattice.shape, lattice.interpolation))
     run_vertex = order[run_start]
-    firsts = [tap[0][run_vertex] if tap[0] is not None else np.clip(tap[2][run_vertex], 0, n - 1) - 1
-              for tap, n in zip(taps, lattice.shape)]
+    if local and run_cells is None:
+        run_cells = np.stack([taps[a][2][run_vertex] for a in range(3)], 1)
+    if kernels:     # (no taps stored: a local axis's first tap is clip(cell, 0, n - 1) - 1)
+        firsts = [np.clip(run_cells[:, a], 0, n - 1) - 1 for a, n in enumerate(lattice.shape)]
+    else:
+        firsts = [tap[0][run_vertex] for tap in taps]
     grid = [np.clip(firsts[a][:, None] + np.arange(K), 0, lattice.shape[a] - 1)
             for a, K in enumerate((Ku, Kv, Kw))]
     nu, nv, _ = lattice.shape
@@ -351,7 +372,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.block_island = b.run_island[b.block_run]
     if local:
         # The unclamped cell of every block (`solve_kernels` gathers its taps from it).
-        b.block_cell = np.stack([taps[a][2][run_vertex] for a in range(3)], 1)[b.block_run]
+        b.block_cell = run_cells[b.block_run]
 
     finish(b, rel, tris, labels, n_slots, faces)
     b.block_parts = parallel.split(n_blocks, V)
@@ -433,8 +454,7 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
     layout.slots(kernels, runs, bs, b.slot, sorted_slot)
     b.slot_influence, b.params, b.x0 = np.zeros(n_slots, dt), np.zeros((4, n_slots), dt), np.zeros((3, n_slots), dt)
     face_vol = np.empty(b.topology.tris_t.shape[1])
-    b.n_outside = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot,
-                                               np.ascontiguousarray(rel), face_vol)
+    b.n_outside = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot, rel, face_vol)
     return face_vol, _volume_sums(b, face_vol)
 
 
@@ -449,14 +469,14 @@ def stable_order(keys):
     return order
 
 
-def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None, kernels=None):
+def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None, kernels=None, relative=True):
     """Validate a bind's inputs and fill the binding's mesh facts; shared by every kind of binding.
     `topology` (a `Topology` of `tris`, or None to make one) carries what does not depend on the
     positions; `kernels` (`compiled.bind_kernels`) check and measure the positions in one pass
     where the topology is given (a re-embedding: every frame of a mesh moving through the
     lattice), with the same results.
     Returns (verts (V, 3), tris (F, 3), influence (V,), island labels (V,), coordinates relative
-    to the volume origins (V, 3))."""
+    to the volume origins (V, 3), or None unless `relative`)."""
     dtype = np.dtype(dtype)
     if dtype not in (np.float32, np.float64):
         raise ValueError(f"dtype must be float32 or float64, got {dtype}")
@@ -492,7 +512,9 @@ def prepare(b, lattice, rest_verts, tris, influence, dtype, topology=None, kerne
     else:
         b.island_origin = lattice.centre[None].copy()
     single = not b.is_closed or b.n_islands == 1
-    if measured is None:
+    if not relative:
+        rel = None
+    elif measured is None:
         rel = verts - (b.island_origin[0] if single else b.island_origin[labels])
     else:
         rel = layout.relative(kernels, verts, b.island_origin, _NO_LABELS if single else measured[3])

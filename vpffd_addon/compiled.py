@@ -269,30 +269,37 @@ def _smoke(kernels):
         if bool(kernels["closed"](start, pairs)) != is_closed(tris, n) or count != ref_count \
                 or not np.array_equal(labels, ref_labels):
             raise RuntimeError("the compiled closedness or islands differ from NumPy's")
-    # The cells twice over, sorted in two parts (as on two worker threads): every key of the first
-    # part is in the second too, and the parts' places must follow each other within a key.
-    cu = np.r_[cell, cell]
-    cv, cw = cu[::-1].copy(), np.zeros_like(cu)
-    dims = np.array([11, 11, 4], np.int64)          # (cells of a 5-point axis are in [-3, 7])
-    V = len(cu)
+    # Cells and keys of coordinates in, at the edges of and outside a 5 x 4 x 3 lattice, twice over,
+    # sorted in two parts (as on two worker threads): every key of the first part is in the second
+    # too, and the parts' places must follow each other within a key.
+    shape = np.array([5, 4, 3], np.int64)
+    xyz = np.stack([x, -x[::-1], 0.5 * x], 1)
+    xyz = np.ascontiguousarray(np.vstack([xyz, xyz[::-1]]))
+    dims = shape + 6
+    cells = [axis_cells(xyz[:, a], int(shape[a]), -0.5, 0.5)[0] + 3 for a in range(3)]
+    V = len(xyz)
+    origin = np.array([[0.1, -0.2, 0.3], [0.5, 0.25, -1.0], [0.0, 0.0, 0.0]])
     for labels in (np.zeros(0, np.int64), (np.arange(V) % 3).astype(np.int64)):
         k = 1 if len(labels) == 0 else 3
-        key, counts = np.empty(V, np.int64), np.zeros((2, k * 484), np.int64)
+        K = k * int(np.prod(dims))
+        key, counts, rel = np.empty(V, np.int64), np.zeros((2, K), np.int64), np.empty((V, 3))
+        args = (xyz, shape, np.full(3, -0.5), np.full(3, 0.5), labels, dims, origin, labels, rel, key)
         for j, (v0, v1) in enumerate(((0, len(x)), (len(x), V))):
-            kernels["cell_keys"](cu, cv, cw, labels, dims, key, counts[j], v0, v1)
-        _team_agrees(kernels, "cell_keys", (cu, cv, cw, labels, dims, key, counts), V, (5, 6),
-                     edges=(0, len(x), V))
-        start, place = np.empty(k * 484 + 1, np.int64), np.empty((2, k * 484), np.int64)
+            kernels["cell_keys"](*args, counts[j], v0, v1)
+        _team_agrees(kernels, "cell_keys", args + (counts,), V, (8, 9, 10), edges=(0, len(x), V))
+        if not np.array_equal(rel, xyz - origin[labels if k > 1 else 0]):
+            raise RuntimeError("the coordinates relative to the volume origins differ from NumPy's")
+        start, place = np.empty(K + 1, np.int64), np.empty((2, K), np.int64)
         kernels["key_starts"](counts, start, place)
         place_start = place.copy()
         got = np.empty(V, np.int64)
         for j, (v0, v1) in enumerate(((0, len(x)), (len(x), V))):
             kernels["place_keys"](key, place[j], got, v0, v1)
         _team_agrees(kernels, "place_keys", (key, place_start, got), V, (2,), edges=(0, len(x), V))
-        want = ((cw + 3) * 11 + cv + 3) * 11 + cu + 3 + (labels * 484 if k > 1 else 0)
+        want = (cells[2] * dims[1] + cells[1]) * dims[0] + cells[0] + (labels * (K // k) if k > 1 else 0)
         if not (np.array_equal(got, np.argsort(want, kind="stable")) and start[-1] == V
                 and np.array_equal(key, want)):
-            raise RuntimeError("the counting sort's order differs from NumPy's stable argsort")
+            raise RuntimeError("the counting sort's keys or order differ from NumPy's")
     xyz = np.stack([x, -x, 2 * x], 1)
     for labels in (np.zeros(0, np.int64), (np.arange(len(x)) % 2).astype(np.int64)):
         k = 1 if len(labels) == 0 else 2

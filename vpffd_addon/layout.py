@@ -57,24 +57,28 @@ def axis_cells(kernels, verts, lattice):
     return cells
 
 
-def counting_order(kernels, cu, cv, cw, labels, dims, n_keys):
+def cell_order(kernels, verts, lattice, labels, dims, n_keys, origin, rows):
     """The vertices in stable order of their key (island, cell), as np.argsort(kind="stable") of
-    `binding.bind_lattice`'s keys, by a counting sort. cu, cv, cw (V,) int64 unclamped cells,
-    labels (V,) int64 (empty: one island), dims (3,) int64 the cells per axis, n_keys = islands x
-    cells. Returns (start (n_keys + 1,) where every key's vertices begin, order (V,) int64)."""
-    V = len(cu)
+    `binding.bind_lattice`'s keys, by a counting sort whose first pass makes every vertex's cells
+    (`bases.axis_cells`, every axis local) and key from its coordinates verts (V, 3) float64
+    (finite), and their coordinates relative to the volume origins (as `relative`: origin (k, 3),
+    rows (V,) int64 or empty). labels (V,) int64 (empty: one island), dims (3,) int64 the cells
+    per axis (n + 6), n_keys = islands x cells. Returns (start (n_keys + 1,) where every key's
+    vertices begin, order (V,) int64, rel (V, 3) float64)."""
+    V = len(verts)
     parts = parallel.split(V, V)
     if len(parts) > 1 and n_keys * len(parts) > _KEYS_PER_VERTEX * V:
         parts = [slice(0, V)]
     P = len(parts)
-    key = np.empty(V, np.int64)
+    key, rel = np.empty(V, np.int64), np.empty_like(verts)
     counts = np.zeros((P, n_keys), np.int64)
-    compiled.over("cell_keys", parts, cu, cv, cw, labels, dims, key, counts, per_part=(6,), kernels=kernels)
+    compiled.over("cell_keys", parts, verts, np.array(lattice.shape, np.int64), lattice.lo, lattice.hi,
+                  labels, dims, origin, rows, rel, key, counts, per_part=(10,), kernels=kernels)
     start, place = np.empty(n_keys + 1, np.int64), np.empty((P, n_keys), np.int64)
     kernels["key_starts"](counts, start, place)
     order = np.empty(V, np.int64)
     compiled.over("place_keys", parts, key, place, order, per_part=(1,), kernels=kernels)
-    return start, order
+    return start, order, rel
 
 
 def slots(kernels, runs, bs, slot, sorted_slot):

@@ -107,15 +107,35 @@ def define(njit):
             tt[v] = u - fi
 
     @njit
-    def cell_keys(cu, cv, cw, labels, dims, key, counts, v0, v1):
+    def cell_keys(verts, n, lo, hi, labels, dims, origin, rows, rel, key, counts, v0, v1):
         # The key (island, cell) of vertices v0..v1-1 into key (V,), counted by key into counts
         # (K,) (zeroed): (labels[v] * n_cells + (cw + 3) * dv + cv + 3) * du + cu + 3 with
-        # dims = (du, dv, dw) (labels empty: one island).
+        # dims = (du, dv, dw) (labels empty: one island), where cu, cv, cw are the unclamped
+        # cells of the three axes made as `axis_cells` makes them from the coordinates verts
+        # (V, 3) (finite: checked before), n (3,) points per axis (each >= 2), lo, hi (3,) the
+        # lattice's box. The cells go straight into the key: no pass writes them and reads them
+        # back. In the same pass, as `relative`: rel (V, 3) = verts - origin[rows[v]] (origin
+        # (k, 3), rows (V,), or empty for origin[0]), which the faces' volume terms and x0 read
+        # (subtracting there instead costs more than this pass's writes).
         du, dv = dims[0], dims[1]
         n_cells = dims[0] * dims[1] * dims[2]
         one = labels.shape[0] == 0
+        d0 = (hi[0] - lo[0]) / (n[0] - 1)
+        d1 = (hi[1] - lo[1]) / (n[1] - 1)
+        d2 = (hi[2] - lo[2]) / (n[2] - 1)
+        t0, t1, t2 = n[0] + 2.0, n[1] + 2.0, n[2] + 2.0
+        single = rows.shape[0] == 0
         for v in range(v0, v1):
-            k = ((cw[v] + 3) * dv + cv[v] + 3) * du + cu[v] + 3
+            r = 0 if single else rows[v]
+            for a in range(3):
+                rel[v, a] = verts[v, a] - origin[r, a]
+            u0 = (verts[v, 0] - lo[0]) / d0
+            u1 = (verts[v, 1] - lo[1]) / d1
+            u2 = (verts[v, 2] - lo[2]) / d2
+            u0 = -3.0 if u0 < -3.0 else (t0 if u0 > t0 else u0)
+            u1 = -3.0 if u1 < -3.0 else (t1 if u1 > t1 else u1)
+            u2 = -3.0 if u2 < -3.0 else (t2 if u2 > t2 else u2)
+            k = ((int(np.floor(u2)) + 3) * dv + int(np.floor(u1)) + 3) * du + int(np.floor(u0)) + 3
             if not one:
                 k += labels[v] * n_cells
             key[v] = k
@@ -282,10 +302,11 @@ def axis_cells_team(edges, xyz, a, n, lo, hi, cell, tt):
         _k_axis_cells(xyz, a, n, lo, hi, cell, tt, edges[j], edges[j + 1])  # noqa: F821
 
 
-def cell_keys_team(edges, cu, cv, cw, labels, dims, key, counts):
+def cell_keys_team(edges, verts, n, lo, hi, labels, dims, origin, rows, rel, key, counts):
     # counts (parts, K): every part's own counts.
     for j in prange(edges.shape[0] - 1):
-        _k_cell_keys(cu, cv, cw, labels, dims, key, counts[j], edges[j], edges[j + 1])  # noqa: F821
+        _k_cell_keys(verts, n, lo, hi, labels, dims, origin, rows, rel, key, counts[j],  # noqa: F821
+                     edges[j], edges[j + 1])
 
 
 def place_keys_team(edges, key, place, order):

@@ -365,7 +365,7 @@ def _smoke_solve(kernels, dtype):
         rstart, entries_v, ring_v = np.empty(5, np.int64), np.empty_like(pairs_v), np.empty(4, np.int8)
         kernels["vertex_rings"](start_v, pairs_v, rstart, entries_v, ring_v)
         slot = np.arange(4)
-        start, entries, ring = np.zeros(5, np.int64), np.empty(rstart[-1], np.int32), np.zeros(4, np.int8)
+        start, entries, ring = np.zeros(5, np.int64), np.empty(rstart[-1], np.uint32), np.zeros(4, np.int8)
         kernels["slot_incidence_start"](slot, rstart, start)
         kernels["slot_incidence_fill"](slot, rstart, entries_v[:rstart[-1]], ring_v, start, entries, ring, 0, 4)
         _team_agrees(kernels, "slot_incidence_fill", (slot, rstart, entries_v[:rstart[-1]].copy(), ring_v, start,
@@ -708,16 +708,18 @@ def _along(e, X):
 
 def incidence(binding):
     """The faces around every slot of `binding` as the gradient passes read them
-    (`solve_kernels.vertex_rings`): (start (n_slots + 1,) int64, entries int32, ring (n_slots,)
+    (`solve_kernels.vertex_rings`): (start (n_slots + 1,) int64, entries uint32, ring (n_slots,)
     int8), made once per binding (kept as `binding.incidence`) from its topology's faces around
-    every vertex (made once per topology: a mesh re-embedded on every frame only renumbers them)."""
+    every vertex (made once per topology: a mesh re-embedded on every frame only renumbers them).
+    The entries are unsigned because numba checks every signed index for a negative value (to
+    count it from the end) and the gradient passes gather by them: 5-8% of those passes."""
     got = getattr(binding, "incidence", None)
     if got is None:
         K, topo, slot = _state["kernels"], binding.topology, binding.slot
         around = vertex_rings(topo)
         n_slots = binding.x0.shape[1]
         start = np.zeros(n_slots + 1, np.int64)
-        entries, ring = np.empty(len(around[1]), np.int32), np.zeros(n_slots, np.int8)
+        entries, ring = np.empty(len(around[1]), np.uint32), np.zeros(n_slots, np.int8)
         K["slot_incidence_start"](slot, around[0], start)
         over("slot_incidence_fill", binding.vertex_parts, slot, *around, start, entries, ring, kernels=K)
         got = binding.incidence = (start, entries, ring)

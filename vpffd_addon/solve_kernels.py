@@ -150,10 +150,13 @@ def forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1):
                 cell_polynomial(D, comps[ci], idx, c, A, B, Cc)
                 for q in range(64):
                     C[ci, q] = Cc[q]
+        pu = params[0, base:base + bs]
+        pv = params[1, base:base + bs]
+        pw = params[2, base:base + bs]
         for s in range(bs):
-            uu[s] = params[0, base + s]
-            vv[s] = params[1, base + s]
-            ww[s] = params[2, base + s]
+            uu[s] = pu[s]
+            vv[s] = pv[s]
+            ww[s] = pw[s]
         for ci in range(n_comps):
             comp = comps[ci]
             for s in range(bs):
@@ -172,18 +175,23 @@ def forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1):
                     e2 = ((k23 * u + k22) * u + k21) * u + k20
                     e3 = ((k33 * u + k32) * u + k31) * u + k30
                     acc[s] = acc[s] * ww[s] + (((e3 * v + e2) * v + e1) * v + e0)
+            xo = X[comp, base:base + bs]
+            xi = x0[comp, base:base + bs]
+            ps = params[3, base:base + bs]
             for s in range(bs):
-                X[comp, base + s] = x0[comp, base + s] + params[3, base + s] * acc[s]
+                xo[s] = xi[s] + ps[s] * acc[s]
 
 
 def block_powers(params, base, bs, pu, pv, pw):
     # The powers of the block's cell coordinates in float64, per slot: pu[p] = u^p (p = 1..3),
     # pv[q] = v^q and pw[r] = s w^r with the influence s (q, r = 0..3), all (4, bs).
+    b0, b1, b2, b3 = (params[0, base:base + bs], params[1, base:base + bs], params[2, base:base + bs],
+                      params[3, base:base + bs])
     for s in range(bs):
-        u = np.float64(params[0, base + s])
-        v = np.float64(params[1, base + s])
-        w = np.float64(params[2, base + s])
-        si = np.float64(params[3, base + s])
+        u = np.float64(b0[s])
+        v = np.float64(b1[s])
+        w = np.float64(b2[s])
+        si = np.float64(b3[s])
         pu[1, s] = u
         pu[2, s] = u * u
         pu[3, s] = u * u * u
@@ -224,23 +232,22 @@ def block_moments(gs, bs, pu, pv, pw, h, M):
             M[o + 3] = a3
 
 
-def fan_gradient(xp, xq, inc_start, inc, ring, v):
-    # The sum over the faces around slot v of xp[m] xq[n] - xq[m] xp[n] (component a of m x n
-    # for the face (v, m, n), the other two coordinates xp, xq): where they form one closed fan
-    # (ring[v]: entries r_0 .. r_d-1, faces (v, r_k, r_k+1) and (v, r_d-1, r_0)) each neighbour's
-    # two coordinates are gathered once, else the pairs (m, n) one face at a time
+def fan_gradient(xp, xq, fan, is_ring):
+    # The sum over the faces around one slot of xp[m] xq[n] - xq[m] xp[n] (component a of m x n
+    # for the face (v, m, n), the other two coordinates xp, xq), `fan` its entries: where they form
+    # one closed fan (`is_ring`: entries r_0 .. r_d-1, faces (v, r_k, r_k+1) and (v, r_d-1, r_0))
+    # each neighbour's two coordinates are gathered once, else the pairs (m, n) one face at a time
     # (`vertex_rings`).
-    s0 = inc_start[v]
-    s1 = inc_start[v + 1]
     acc = 0.0
-    if ring[v]:
-        r = inc[s0]
+    d = fan.shape[0]
+    if is_ring:
+        r = fan[0]
         p0 = xp[r]
         q0 = xq[r]
         pm = p0
         qm = q0
-        for e in range(s0 + 1, s1):
-            n = inc[e]
+        for e in range(1, d):
+            n = fan[e]
             pn = xp[n]
             qn = xq[n]
             acc += pm * qn - qm * pn
@@ -248,9 +255,9 @@ def fan_gradient(xp, xq, inc_start, inc, ring, v):
             qm = qn
         acc += pm * q0 - qm * p0
     else:
-        for e in range(s0, s1, 2):
-            m = inc[e]
-            n = inc[e + 1]
+        for e in range(0, d, 2):
+            m = fan[e]
+            n = fan[e + 1]
             acc += xp[m] * xq[n] - xq[m] * xp[n]
     return acc
 
@@ -269,18 +276,23 @@ def gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, b0
     h = np.empty(bs)
     with_x0 = x0a.shape[0] > 0
     for bl in range(b0, b1):
+        # (the block's slices: indices from 0 up, see `householder`)
         base = bl * bs
+        st = inc_start[base:base + bs + 1]
+        rg = ring[base:base + bs]
+        gb = g[base:base + bs]
+        sb = params[3, base:base + bs]
+        xb = x0a[base:base + bs] if with_x0 else x0a
         sx = 0.0
         sf = 0.0
         for s in range(bs):
-            v = base + s
-            acc = fan_gradient(xp, xq, inc_start, inc, ring, v)
+            acc = fan_gradient(xp, xq, inc[st[s]:st[s + 1]], rg[s])
             gv = acc * (1.0 / 6.0)
-            g[v] = gv
+            gb[s] = gv
             gs[s] = gv
             if with_x0:
-                sx += x0a[v] * gv
-            sf += abs(params[3, v] * gv)
+                sx += xb[s] * gv
+            sf += abs(sb[s] * gv)
         sums[0, bl] = sx
         sums[1, bl] = sf
         block_powers(params, base, bs, pu, pv, pw)
@@ -302,6 +314,11 @@ def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1)
     z = X[2]
     for bl in range(b0, b1):
         base = bl * bs
+        st = inc_start[base:base + bs + 1]
+        rg = ring[base:base + bs]
+        sb = params[3, base:base + bs]
+        g0b, g1b, g2b = g[0, base:base + bs], g[1, base:base + bs], g[2, base:base + bs]
+        x0b, x1b, x2b = x0[0, base:base + bs], x0[1, base:base + bs], x0[2, base:base + bs]
         sx0 = 0.0
         sx1 = 0.0
         sx2 = 0.0
@@ -309,18 +326,17 @@ def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1)
         sf1 = 0.0
         sf2 = 0.0
         for s in range(bs):
-            v = base + s
             a0 = 0.0
             a1 = 0.0
             a2 = 0.0
-            s0 = inc_start[v]
-            s1 = inc_start[v + 1]
-            if ring[v]:                 # (one closed fan: see `fan_gradient`)
-                r = inc[s0]
+            fan = inc[st[s]:st[s + 1]]
+            d = fan.shape[0]
+            if rg[s]:                   # (one closed fan: see `fan_gradient`)
+                r = fan[0]
                 x_0, y_0, z_0 = x[r], y[r], z[r]
                 xm, ym, zm = x_0, y_0, z_0
-                for e in range(s0 + 1, s1):
-                    n = inc[e]
+                for e in range(1, d):
+                    n = fan[e]
                     xn, yn, zn = x[n], y[n], z[n]
                     a0 += ym * zn - zm * yn
                     a1 += zm * xn - xm * zn
@@ -330,25 +346,25 @@ def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1)
                 a1 += zm * x_0 - xm * z_0
                 a2 += xm * y_0 - ym * x_0
             else:
-                for e in range(s0, s1, 2):
-                    m = inc[e]
-                    n = inc[e + 1]
+                for e in range(0, d, 2):
+                    m = fan[e]
+                    n = fan[e + 1]
                     a0 += y[m] * z[n] - z[m] * y[n]
                     a1 += z[m] * x[n] - x[m] * z[n]
                     a2 += x[m] * y[n] - y[m] * x[n]
             g0 = a0 * (1.0 / 6.0)
             g1 = a1 * (1.0 / 6.0)
             g2 = a2 * (1.0 / 6.0)
-            g[0, v] = g0
-            g[1, v] = g1
-            g[2, v] = g2
+            g0b[s] = g0
+            g1b[s] = g1
+            g2b[s] = g2
             gs[0, s] = g0
             gs[1, s] = g1
             gs[2, s] = g2
-            sx0 += x0[0, v] * g0
-            sx1 += x0[1, v] * g1
-            sx2 += x0[2, v] * g2
-            si = params[3, v]
+            sx0 += x0b[s] * g0
+            sx1 += x1b[s] * g1
+            sx2 += x2b[s] * g2
+            si = sb[s]
             sf0 += abs(si * g0)
             sf1 += abs(si * g1)
             sf2 += abs(si * g2)
@@ -397,44 +413,72 @@ def householder(M, tau):
     # on M (k, n) (row j of M is column j of A, so every loop runs along a row): R^T is then the
     # lower triangle of M[:, :k] and row j right of column j holds reflection j's vector (its
     # first entry 1 implied), tau (k,) their factors. (The joint steps' rows, reduced to k x k
-    # without LAPACK: see `compiled.min_norm`.)
+    # without LAPACK: see `compiled.min_norm`.) Every loop runs over a slice from a constant
+    # start: numba cannot tell that an index from a start known only at run time is not negative,
+    # and the check for it keeps LLVM from vectorising the loop (3.5 times slower); each
+    # reflection goes over two rows at a time, which share its loads (docs/performance.md,
+    # "Per-Island Volume").
     k, n = M.shape
     for j in range(k):
+        v = M[j, j:]
+        m = v.size
         s = 0.0
-        for i in range(j, n):
-            s += M[j, i] * M[j, i]
-        alpha = M[j, j]
+        for i in range(m):
+            s += v[i] * v[i]
+        alpha = v[0]
         norm = np.sqrt(s)
         if norm == 0.0:
             tau[j] = 0.0
             continue
         beta = -norm if alpha >= 0.0 else norm
         v0 = alpha - beta
-        for i in range(j + 1, n):
-            M[j, i] /= v0
-        tau[j] = (beta - alpha) / beta
-        M[j, j] = beta
-        for c in range(j + 1, k):
-            d = M[c, j]
-            for i in range(j + 1, n):
-                d += M[j, i] * M[c, i]
-            d *= tau[j]
-            M[c, j] -= d
-            for i in range(j + 1, n):
-                M[c, i] -= d * M[j, i]
+        for i in range(1, m):
+            v[i] /= v0
+        t = (beta - alpha) / beta
+        tau[j] = t
+        v[0] = beta
+        c = j + 1
+        while c + 1 < k:
+            ra = M[c, j:]
+            rb = M[c + 1, j:]
+            da = ra[0]
+            db = rb[0]
+            for i in range(1, m):
+                da += v[i] * ra[i]
+                db += v[i] * rb[i]
+            da *= t
+            db *= t
+            ra[0] -= da
+            rb[0] -= db
+            for i in range(1, m):
+                ra[i] -= da * v[i]
+                rb[i] -= db * v[i]
+            c += 2
+        if c < k:
+            rc = M[c, j:]
+            d = rc[0]
+            for i in range(1, m):
+                d += v[i] * rc[i]
+            d *= t
+            rc[0] -= d
+            for i in range(1, m):
+                rc[i] -= d * v[i]
 
 
 def apply_q(M, tau, x):
-    # x (n,) <- Q x with the reflections `householder` left in M, tau (applied last to first).
+    # x (n,) <- Q x with the reflections `householder` left in M, tau (applied last to first;
+    # slices from constant starts, as there).
     k, n = M.shape
     for j in range(k - 1, -1, -1):
-        d = x[j]
-        for i in range(j + 1, n):
-            d += M[j, i] * x[i]
+        v = M[j, j:]
+        y = x[j:]
+        d = y[0]
+        for i in range(1, v.size):
+            d += v[i] * y[i]
         d *= tau[j]
-        x[j] -= d
-        for i in range(j + 1, n):
-            x[i] -= d * M[j, i]
+        y[0] -= d
+        for i in range(1, v.size):
+            y[i] -= d * v[i]
 
 
 def triangular_solve(L, b, x, transposed):
@@ -595,14 +639,21 @@ def to_verts(X, slot, origin, vertex_row, out, v0, v1):
     # many of these coordinates are not finite (the solve's last check, here instead of a pass
     # of its own over the vertices on one thread).
     bad = 0
-    for v in range(v0, v1):
-        sl = slot[v]
-        row = vertex_row[v]
-        for c in range(3):
-            x = np.float64(X[c, sl]) + origin[row, c]
-            out[v, c] = x
-            if not np.isfinite(x):
-                bad += 1
+    sv = slot[v0:v1]
+    rv = vertex_row[v0:v1]
+    ov = out[v0:v1]
+    x, y, z = X[0], X[1], X[2]
+    for i in range(sv.shape[0]):
+        sl = sv[i]
+        o = origin[rv[i]]
+        p = np.float64(x[sl]) + o[0]
+        q = np.float64(y[sl]) + o[1]
+        r = np.float64(z[sl]) + o[2]
+        ov[i, 0] = p
+        ov[i, 1] = q
+        ov[i, 2] = r
+        if not (np.isfinite(p) and np.isfinite(q) and np.isfinite(r)):
+            bad += (not np.isfinite(p)) + (not np.isfinite(q)) + (not np.isfinite(r))
     return bad
 
 

@@ -127,8 +127,8 @@ MUTATIONS = {
         ["tests/test_core_compiled.py", "-k", "spinning"], {}),
     "reembed-island-origin": (
         "vpffd_addon/layout_kernels.py",
-        "            r = 0 if single else rows[v]\n            for a in range(3):\n                rel[v, a] = verts[v, a] - origin[r, a]",
-        "            r = 0 if single else rows[v]\n            for a in range(3):\n                rel[v, a] = verts[v, a] - origin[0, a]",
+        "            r = 0 if single else part_rows[v]\n            for a in range(3):\n                R[v, a] = P[v, a] - origin[r, a]",
+        "            r = 0 if single else part_rows[v]\n            for a in range(3):\n                R[v, a] = P[v, a] - origin[0, a]",
         ["tests/test_core_compiled.py", "-k", "re_embedding"], {}),
     "reembed-parts-unordered": (
         "vpffd_addon/layout_kernels.py",

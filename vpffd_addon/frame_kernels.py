@@ -13,12 +13,17 @@ def affine(points, mat, out, v0, v1):
     # out[v] = mat (4, 4) applied to points[v] (V, 3) in float64 for v0..v1-1, as
     # `linalg3.affine` (((p0 m0 + p1 m1) + p2 m2) + m3 per row, no fused multiply-adds): the map
     # into lattice space and back, twice a frame.
-    for v in range(v0, v1):
-        p0 = points[v, 0] * 1.0
-        p1 = points[v, 1] * 1.0
-        p2 = points[v, 2] * 1.0
+    # (slices, indexed from 0: numba checks an index from a start known only at run time for a
+    # negative value, which keeps LLVM from vectorising; docs/performance.md, "Indices numba
+    # can trust")
+    P = points[v0:v1]
+    O = out[v0:v1]
+    for v in range(P.shape[0]):
+        p0 = P[v, 0] * 1.0
+        p1 = P[v, 1] * 1.0
+        p2 = P[v, 2] * 1.0
         for r in range(3):
-            out[v, r] = p0 * mat[r, 0] + p1 * mat[r, 1] + p2 * mat[r, 2] + mat[r, 3]
+            O[v, r] = p0 * mat[r, 0] + p1 * mat[r, 1] + p2 * mat[r, 2] + mat[r, 3]
 
 
 def float32_offsets(positions, mat, inputs, still, written, offsets, output, v0, v1):
@@ -41,7 +46,11 @@ def float32_offsets(positions, mat, inputs, still, written, offsets, output, v0,
         m00, m01, m02, m03 = mat[0, 0], mat[0, 1], mat[0, 2], mat[0, 3]
         m10, m11, m12, m13 = mat[1, 0], mat[1, 1], mat[1, 2], mat[1, 3]
         m20, m21, m22, m23 = mat[2, 0], mat[2, 1], mat[2, 2], mat[2, 3]
-    for v in range(v0, v1):
+    # (every array sliced to the part, as in `affine`)
+    positions, inputs, offsets, output = positions[v0:v1], inputs[v0:v1], offsets[v0:v1], output[v0:v1]
+    still = still[v0:v1] if keep else still
+    written = written[v0:v1] if compare else written
+    for v in range(inputs.shape[0]):
         i0 = inputs[v, 0] * 1.0
         i1 = inputs[v, 1] * 1.0
         i2 = inputs[v, 2] * 1.0

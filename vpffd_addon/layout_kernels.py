@@ -27,15 +27,22 @@ def define(njit):
         # The slot of every vertex (slot, by vertex) and of every sorted position (sorted_slot)
         # of runs r0..r1-1: runs cut into blocks of bs. Counters, not j // bs and j % bs: an
         # integer division per vertex would cost more than the rest.
-        for r in range(r0, r1):
-            blk = first_block[r]
+        # (Here and below every array read or written in order is a slice indexed from 0: numba
+        # checks an index from a start known only at run time for a negative value, which costs
+        # in every pass and keeps LLVM from vectorising; docs/performance.md, "Indices numba can
+        # trust".)
+        firsts, starts, lens = first_block[r0:r1], run_start[r0:r1], run_len[r0:r1]
+        for r in range(firsts.shape[0]):
+            blk = firsts[r]
             pos = 0
-            for j in range(run_len[r]):
+            a = starts[r]
+            run_order = order[a:a + lens[r]]
+            run_slots = sorted_slot[a:a + lens[r]]
+            for j in range(run_order.shape[0]):
                 if pos == bs:
                     blk += 1
                     pos = 0
-                i = run_start[r] + j
-                sorted_slot[i] = slot[order[i]] = blk * bs + pos
+                run_slots[j] = slot[run_order[j]] = blk * bs + pos
                 pos += 1
 
     @njit
@@ -52,9 +59,10 @@ def define(njit):
         du0 = (hi[0] - lo[0]) / (shape[0] - 1)
         du1 = (hi[1] - lo[1]) / (shape[1] - 1)
         du2 = (hi[2] - lo[2]) / (shape[2] - 1)
-        for i in range(i0, i1):
-            v = order[i]
-            sl = sorted_slot[i]
+        part_order, part_slots = order[i0:i1], sorted_slot[i0:i1]
+        for i in range(part_order.shape[0]):
+            v = part_order[i]
+            sl = part_slots[i]
             out = False
             for a in range(3):
                 x = verts[v, a]
@@ -79,16 +87,17 @@ def define(njit):
         # The float64 volume terms of faces f0..f1-1 about the origin, as `volume.face_volumes`,
         # from the vertices' coordinates rel (V, 3) (in the mesh's own order, whose faces mostly
         # address nearby vertices).
-        for f in range(f0, f1):
-            a = tris_t[0, f]
-            b = tris_t[1, f]
-            c = tris_t[2, f]
+        ta, tb, tc, out = tris_t[0, f0:f1], tris_t[1, f0:f1], tris_t[2, f0:f1], face_vol[f0:f1]
+        for f in range(out.shape[0]):
+            a = ta[f]
+            b = tb[f]
+            c = tc[f]
             x0, y0, z0 = rel[a, 0], rel[a, 1], rel[a, 2]
             x1, y1, z1 = rel[b, 0], rel[b, 1], rel[b, 2]
             x2, y2, z2 = rel[c, 0], rel[c, 1], rel[c, 2]
-            face_vol[f] = (x0 * (y1 * z2 - z1 * y2)
-                           + y0 * (z1 * x2 - x1 * z2)
-                           + z0 * (x1 * y2 - y1 * x2)) / 6.0
+            out[f] = (x0 * (y1 * z2 - z1 * y2)
+                      + y0 * (z1 * x2 - x1 * z2)
+                      + z0 * (x1 * y2 - y1 * x2)) / 6.0
 
     @njit
     def axis_cells(xyz, a, n, lo, hi, cell, tt, v0, v1):
@@ -125,20 +134,23 @@ def define(njit):
         d2 = (hi[2] - lo[2]) / (n[2] - 1)
         t0, t1, t2 = n[0] + 2.0, n[1] + 2.0, n[2] + 2.0
         single = rows.shape[0] == 0
-        for v in range(v0, v1):
-            r = 0 if single else rows[v]
+        P, R, keys = verts[v0:v1], rel[v0:v1], key[v0:v1]
+        part_rows = rows if single else rows[v0:v1]
+        part_labels = labels if one else labels[v0:v1]
+        for v in range(P.shape[0]):
+            r = 0 if single else part_rows[v]
             for a in range(3):
-                rel[v, a] = verts[v, a] - origin[r, a]
-            u0 = (verts[v, 0] - lo[0]) / d0
-            u1 = (verts[v, 1] - lo[1]) / d1
-            u2 = (verts[v, 2] - lo[2]) / d2
+                R[v, a] = P[v, a] - origin[r, a]
+            u0 = (P[v, 0] - lo[0]) / d0
+            u1 = (P[v, 1] - lo[1]) / d1
+            u2 = (P[v, 2] - lo[2]) / d2
             u0 = -3.0 if u0 < -3.0 else (t0 if u0 > t0 else u0)
             u1 = -3.0 if u1 < -3.0 else (t1 if u1 > t1 else u1)
             u2 = -3.0 if u2 < -3.0 else (t2 if u2 > t2 else u2)
             k = ((int(np.floor(u2)) + 3) * dv + int(np.floor(u1)) + 3) * du + int(np.floor(u0)) + 3
             if not one:
-                k += labels[v] * n_cells
-            key[v] = k
+                k += part_labels[v] * n_cells
+            keys[v] = k
             counts[k] += 1
 
     @njit
@@ -157,9 +169,10 @@ def define(njit):
     @njit
     def place_keys(key, place, order, v0, v1):
         # Vertices v0..v1-1 into the order at their key's next place (place (K,), a part's row).
-        for v in range(v0, v1):
-            k = key[v]
-            order[place[k]] = v
+        part = key[v0:v1]
+        for i in range(part.shape[0]):
+            k = part[i]
+            order[place[k]] = v0 + i
             place[k] += 1
 
     @njit
@@ -245,12 +258,14 @@ def define(njit):
                 hi[r, a] = -np.inf
         bad = 0
         one = labels.shape[0] == 0
-        for v in range(v0, v1):
-            r = 0 if one else labels[v]
+        P, O = verts[v0:v1], out[v0:v1]
+        part_labels = labels if one else labels[v0:v1]
+        for v in range(P.shape[0]):
+            r = 0 if one else part_labels[v]
             finite = True
             for a in range(3):
-                x = np.float64(verts[v, a])
-                out[v, a] = x
+                x = np.float64(P[v, a])
+                O[v, a] = x
                 if np.isfinite(x):
                     if x < lo[r, a]:
                         lo[r, a] = x

@@ -625,13 +625,15 @@ def slot_incidence_start(slot, start_v, start):
 def slot_incidence_fill(slot, start_v, entries_v, ring_v, start, entries, ring, v0, v1):
     # The entries of vertices v0..v1-1 (`vertex_rings`), as slots, at their slots' places (each
     # vertex its own), and whether each is a ring.
-    for v in range(v0, v1):
-        sl = slot[v]
-        o = start[sl]
-        ring[sl] = ring_v[v]
-        for e in range(start_v[v], start_v[v + 1]):
-            entries[o] = slot[entries_v[e]]
-            o += 1
+    # (slices indexed from 0, as in `householder`)
+    part_slot, part_ring, part_start = slot[v0:v1], ring_v[v0:v1], start_v[v0:v1 + 1]
+    for v in range(part_slot.shape[0]):
+        sl = part_slot[v]
+        ring[sl] = part_ring[v]
+        src = entries_v[part_start[v]:part_start[v + 1]]
+        dst = entries[start[sl]:start[sl] + src.shape[0]]
+        for e in range(src.shape[0]):
+            dst[e] = slot[src[e]]
 
 
 def to_verts(X, slot, origin, vertex_row, out, v0, v1):

@@ -75,8 +75,9 @@ def halves(b, D):
     @fast
     def gathers(xp, xq, start, inc, ring, g, b0, b1):
         bs = g.shape[0] // n_blocks
-        for v in range(b0 * bs, b1 * bs):
-            g[v] = solve_kernels.fan_gradient(xp, xq, start, inc, ring, v) * (1.0 / 6.0)
+        st, rg, out = start[b0 * bs:b1 * bs + 1], ring[b0 * bs:b1 * bs], g[b0 * bs:b1 * bs]
+        for v in range(out.shape[0]):
+            out[v] = solve_kernels.fan_gradient(xp, xq, inc[st[v]:st[v + 1]], rg[v]) * (1.0 / 6.0)
 
     @fast
     def moments(params, g, M, b0, b1):
@@ -116,8 +117,9 @@ def floor(b):
     def gathers(xp, xq, start, inc, out):
         for v in range(start.shape[0] - 1):
             acc = 0.0
-            for e in range(start[v], start[v + 1]):
-                n = inc[e]
+            fan = inc[start[v]:start[v + 1]]        # (indexed from 0: as the passes do it)
+            for e in range(fan.shape[0]):
+                n = fan[e]
                 acc += xp[n] + xq[n]
             out[v] = acc
 

@@ -125,6 +125,11 @@ MUTATIONS = {
         "    if K is None or k > n or k == 0:\n        return None\n    # Scaled",
         "    if True:\n        return None\n    # Scaled",
         ["tests/test_core_compiled.py", "-k", "spinning"], {}),
+    "face-sums-signed-size": (
+        "vpffd_addon/layout_kernels.py",
+        "                size += abs(term)",
+        "                size += term",
+        ["tests/test_core_compiled.py", "-k", "volume_sums"], {}),
     "reembed-island-origin": (
         "vpffd_addon/layout_kernels.py",
         "            r = 0 if single else part_rows[v]\n            for a in range(3):\n                R[v, a] = P[v, a] - origin[r, a]",

@@ -2,6 +2,7 @@
 the same gradient, the same solves (vertices to 1e-6 of the lattice's size, volumes to 1e-7),
 the same result on every run; and the NumPy path, with the reason in words, where numba cannot be
 imported."""
+import math
 import os
 import subprocess
 import sys
@@ -228,6 +229,39 @@ def test_a_compiled_re_embedding_is_numpys_bit_for_bit(kernels, dtype):
         moved[7, 1] = np.nan
         with pytest.raises(ValueError, match=r"rest_verts has non-finite coordinates at 1 vertices \(first: index 7\)"):
             vp.bind(lat, moved, tris, dtype=np.float32, topology=topology)
+
+
+@pytest.mark.parametrize("team_parts", [99, 3])
+@pytest.mark.parametrize("threads", [1, 2, 5])
+def test_one_islands_volume_sums_are_numpys_in_chunks_on_any_number_of_threads(kernels, threads, team_parts,
+                                                                                monkeypatch):
+    # One island: the compiled bind adds the faces' volume terms in chunks as it makes them,
+    # without writing them (`layout_kernels.face_volume_sums`). On a mesh of many chunks, the last
+    # one short, its rest volume and the sum of the terms' sizes are NumPy's bit for bit on any
+    # number of threads, and they are the sums: within rounding of an exact sum of the terms.
+    # An open mesh (80,921 faces) is measured about the lattice's centre, which lies outside it
+    # here: the terms have both signs.
+    v, f = vp.icosphere(6, 0.45)
+    f = f[:-999]
+    assert len(f) % vp.volume.FACE_CHUNK and len(f) > 10 * vp.volume.FACE_CHUNK
+    lat = vp.Lattice((6, 6, 6), "BSPLINE")
+    topology = vp.Topology(f, len(v))
+    moved = (v * [1.1, 0.9, 1.0] + [0.6, -0.01, 0.03]).astype(np.float32)
+    monkeypatch.setattr(compiled, "TEAM_PARTS", team_parts)
+    previous = parallel.set_workers(threads)
+    try:
+        ref, out = _bind_both(lat, moved, f, dtype=np.float32, topology=topology)
+    finally:
+        parallel.set_workers(previous)
+    assert out.n_islands == 1 and len(out.vertex_parts) == threads
+    for name, a in _arrays(ref).items():
+        np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
+    rel = moved.astype(np.float64) - out.island_origin[0]
+    terms = vp.volume.face_volumes(np.ascontiguousarray(rel.T), topology.tris_t)
+    assert (terms < 0).sum() > 1000 and (terms > 0).sum() > 1000
+    assert abs(out.rest_volume - math.fsum(terms)) <= 1e-13 * math.fsum(np.abs(terms))
+    assert out.rest_volume_noise[0] == pytest.approx(4 * np.finfo(np.float32).eps * math.fsum(np.abs(terms)),
+                                                     rel=1e-12)
 
 
 @pytest.mark.parametrize("team_parts", [99, 3])

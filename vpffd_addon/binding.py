@@ -8,7 +8,7 @@ vertex, to hold memory near 100 bytes per vertex in float32.
 """
 import numpy as np
 
-from . import compiled, layout, parallel
+from . import compiled, layout, parallel, volume
 from .bases import _local_weights, axis_cells, axis_taps, tap_count
 from .jacobian import lattice_jacobian_det
 from .lattice import Lattice
@@ -453,8 +453,12 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
     b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
     layout.slots(kernels, runs, bs, b.slot, sorted_slot)
     b.slot_influence, b.params, b.x0 = np.zeros(n_slots, dt), np.zeros((4, n_slots), dt), np.zeros((3, n_slots), dt)
-    face_vol = np.empty(b.topology.tris_t.shape[1])
-    b.n_outside = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot, rel, face_vol)
+    # (one island: only the terms' sums, in the chunks of `volume.chunked_sums`)
+    face_vol = None if b.n_islands == 1 else np.empty(b.topology.tris_t.shape[1])
+    b.n_outside, chunks = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot, rel,
+                                                       face_vol)
+    if face_vol is None:
+        return None, np.cumsum(chunks, axis=0)[-1][:, None]
     return face_vol, _volume_sums(b, face_vol)
 
 
@@ -571,9 +575,10 @@ def face_volume_sums(b, rel):
 
 def _volume_sums(b, face_vol):
     """(2, n_islands): per island the sum of the faces' volume terms face_vol (F,) and of their
-    absolute values, in the faces' own order."""
-    if b.n_islands == 1:            # (a weighted bincount costs ten sums)
-        return np.array([[face_vol.sum()], [np.abs(face_vol).sum()]])
+    absolute values, in the faces' own order (one island: in `volume.chunked_sums`' order, as the
+    compiled bind sums them)."""
+    if b.n_islands == 1:
+        return volume.chunked_sums(face_vol)[:, None]
     island = b.topology.face_island
     return np.stack([np.bincount(island, face_vol, b.n_islands),
                      np.bincount(island, np.abs(face_vol), b.n_islands)])

@@ -254,6 +254,18 @@ def _smoke(kernels):
     _team_agrees(kernels, "face_volumes", (np.ascontiguousarray(coords.T), tris_t, vol), 3, (2,))
     if not np.array_equal(vol, face_volumes(coords, tris_t)):
         raise RuntimeError("the faces' volume terms differ from NumPy's")
+    # Their sums in chunks of two faces (the last one short), as `volume.chunked_sums` adds them,
+    # with a face turned (a negative term).
+    turned = np.array([[0, 1, 3, 1, 3], [1, 3, 2, 2, 1], [2, 2, 0, 3, 2]], np.int64)
+    terms = face_volumes(coords, turned)
+    sums = np.empty((3, 2))
+    kernels["face_volume_sums"](np.ascontiguousarray(coords.T), turned, 2, sums, 0, 3)
+    _team_agrees(kernels, "face_volume_sums", (np.ascontiguousarray(coords.T), turned, 2, sums), 3, (3,))
+    if not (terms.min() < 0 < terms.max()
+            and np.array_equal(sums[:, 0], [terms[0] + terms[1], terms[2] + terms[3], terms[4]])
+            and np.array_equal(sums[:, 1], [abs(terms[0]) + abs(terms[1]), abs(terms[2]) + abs(terms[3]),
+                                            abs(terms[4])])):
+        raise RuntimeError("the faces' volume sums differ from NumPy's")
     n_slots = 8 * len(runs)
     # Closedness and islands: a tetrahedron, a second one beside it and a vertex no face uses;
     # then with a face turned, a face missing, a face doubled and a degenerate face added.

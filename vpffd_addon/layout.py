@@ -10,7 +10,7 @@ counting sort's places laid out part after part within every key). `kernels` is
 """
 import numpy as np
 
-from . import compiled, parallel
+from . import compiled, parallel, volume
 
 #: Parts of the counting sort keep a count per key each: more parts only where those counts stay
 #: small beside the vertices (many islands give many keys).
@@ -94,25 +94,37 @@ def slots(kernels, runs, bs, slot, sorted_slot):
 
 def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel, face_vol):
     """What every slot holds (b.params, b.slot_influence, b.x0: `layout_kernels.sorted_values`)
-    and the faces' float64 volume terms into face_vol (F,) from rel (V, 3), each thread a part of
-    the sorted vertices and then a part of the faces. Returns how many vertices lie outside the
-    lattice."""
+    and the faces' float64 volume terms from rel (V, 3): into face_vol (F,) where it is given,
+    else only their sums in chunks (`layout_kernels.face_volume_sums`, for one island: the terms
+    themselves are read by nothing else), each thread a part of the sorted vertices and then a
+    part of the faces. Returns (how many vertices lie outside the lattice, the chunks' sums
+    (n_chunks, 2) or None)."""
     V, tris_t = b.n_verts, b.topology.tris_t
-    vparts, fparts = parallel.split(V, V), parallel.split(tris_t.shape[1], V)
+    F = tris_t.shape[1]
+    vparts = parallel.split(V, V)
+    if face_vol is None:
+        chunk = volume.FACE_CHUNK
+        sums = np.empty((max(1, -(-F // chunk)), 2))
+        fparts = parallel.split(len(sums), V)
+        faces = ("face_volume_sums", (rel, tris_t, chunk, sums))
+    else:
+        sums, fparts = None, parallel.split(F, V)
+        faces = ("face_volumes", (rel, tris_t, face_vol))
     shape = np.array(lattice.shape, np.int64)
     eps = 1e-6 * lattice.size
 
     values = (order, sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, eps, b.params, b.slot_influence, b.x0)
     if compiled.teams("sorted_values", vparts, kernels):
         got = compiled.over("sorted_values", vparts, *values, returns=1, kernels=kernels)
-        compiled.over("face_volumes", fparts, rel, tris_t, face_vol, kernels=kernels)
-        return int(sum(part[0] for part in got))
+        compiled.over(faces[0], fparts, *faces[1], kernels=kernels)
+        return int(sum(part[0] for part in got)), sums
+    face_kernel = kernels[faces[0]]
 
     def part(j):        # (both kernels in one hand-over per part)
         outside = 0
         if j < len(vparts):
             outside = kernels["sorted_values"](*values, vparts[j].start, vparts[j].stop)
         if j < len(fparts):
-            kernels["face_volumes"](rel, tris_t, face_vol, fparts[j].start, fparts[j].stop)
+            face_kernel(*faces[1], fparts[j].start, fparts[j].stop)
         return outside
-    return sum(parallel.run(part, list(range(max(len(vparts), len(fparts))))))
+    return sum(parallel.run(part, list(range(max(len(vparts), len(fparts)))))), sums

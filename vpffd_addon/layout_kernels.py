@@ -100,6 +100,34 @@ def define(njit):
                       + z0 * (x1 * y2 - y1 * x2)) / 6.0
 
     @njit
+    def face_volume_sums(rel, tris_t, chunk, sums, c0, c1):
+        # Per chunk of `chunk` faces (chunks c0..c1-1): the sum of the faces' float64 volume terms
+        # (as `face_volumes` makes them) and of their absolute values, each added in the faces'
+        # order into sums[c] (2,), the terms themselves not written (`volume.chunked_sums` is the
+        # same arithmetic in NumPy).
+        F = tris_t.shape[1]
+        for c in range(c0, c1):
+            f0 = c * chunk
+            f1 = min(f0 + chunk, F)
+            ta, tb, tc = tris_t[0, f0:f1], tris_t[1, f0:f1], tris_t[2, f0:f1]
+            total = 0.0
+            size = 0.0
+            for f in range(ta.shape[0]):
+                a = ta[f]
+                b = tb[f]
+                d = tc[f]
+                x0, y0, z0 = rel[a, 0], rel[a, 1], rel[a, 2]
+                x1, y1, z1 = rel[b, 0], rel[b, 1], rel[b, 2]
+                x2, y2, z2 = rel[d, 0], rel[d, 1], rel[d, 2]
+                term = (x0 * (y1 * z2 - z1 * y2)
+                        + y0 * (z1 * x2 - x1 * z2)
+                        + z0 * (x1 * y2 - y1 * x2)) / 6.0
+                total += term
+                size += abs(term)
+            sums[c, 0] = total
+            sums[c, 1] = size
+
+    @njit
     def axis_cells(xyz, a, n, lo, hi, cell, tt, v0, v1):
         # `bases.axis_cells` for local axis a (n >= 2) of the coordinates xyz (V, 3): the
         # unclamped cell (V,) int64 and t (V,), of vertices v0..v1-1.
@@ -288,6 +316,7 @@ def define(njit):
                 rel[v, a] = verts[v, a] - origin[r, a]
 
     return {"slots": slots, "sorted_values": sorted_values, "face_volumes": face_volumes,
+            "face_volume_sums": face_volume_sums,
             "axis_cells": axis_cells, "positions": positions, "relative": relative,
             "cell_keys": cell_keys, "key_starts": key_starts, "place_keys": place_keys,
             "components": components, "closed": closed}
@@ -348,5 +377,10 @@ def face_volumes_team(edges, rel, tris_t, face_vol):
         _k_face_volumes(rel, tris_t, face_vol, edges[j], edges[j + 1])  # noqa: F821
 
 
+def face_volume_sums_team(edges, rel, tris_t, chunk, sums):
+    for j in prange(edges.shape[0] - 1):
+        _k_face_volume_sums(rel, tris_t, chunk, sums, edges[j], edges[j + 1])  # noqa: F821
+
+
 _TEAMS = ("positions", "relative", "axis_cells", "cell_keys", "place_keys", "slots", "sorted_values",
-          "face_volumes")
+          "face_volumes", "face_volume_sums")

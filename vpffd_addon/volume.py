@@ -30,6 +30,26 @@ def face_volumes(coords_t, tris_t):
             + z[0] * (x[1] * y[2] - y[1] * x[2])) / 6.0
 
 
+#: Faces per chunk of `chunked_sums` (fixed, so that the sums do not depend on how many threads
+#: made them).
+FACE_CHUNK = 4096
+
+
+def chunked_sums(face_vol):
+    """(sum, sum of absolute values) of face_vol (F,) float64, in a fixed order: each chunk of
+    `FACE_CHUNK` faces summed in the faces' order, then the chunks' sums in theirs, each addition
+    one float64 rounding. The compiled bind makes these sums as it makes the terms, in chunks on
+    the worker threads, without writing the terms (`layout_kernels.face_volume_sums`); this is the
+    same arithmetic in NumPy (`cumsum` adds in order), so both give the same bits."""
+    F = len(face_vol)
+    n = max(1, -(-F // FACE_CHUNK))
+    padded = np.zeros(n * FACE_CHUNK)
+    padded[:F] = face_vol
+    chunks = padded.reshape(n, FACE_CHUNK)
+    per_chunk = np.stack([np.cumsum(chunks, axis=1)[:, -1], np.cumsum(np.abs(chunks), axis=1)[:, -1]])
+    return np.cumsum(per_chunk, axis=1)[:, -1]
+
+
 def gradient_component(P, Q, corners, n_slots):
     """Volume gradient along a direction e, at every vertex slot, from the other two coordinates.
 

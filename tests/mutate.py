@@ -130,6 +130,16 @@ MUTATIONS = {
         "                size += abs(term)",
         "                size += term",
         ["tests/test_core_compiled.py", "-k", "volume_sums"], {}),
+    "reembed-fill-short": (
+        "vpffd_addon/layout.py",
+        '        tasks.insert(0, ("fill", V, _NS_PER["fill"]',
+        '        tasks.insert(0, ("fill", V - 1, _NS_PER["fill"]',
+        ["tests/test_core_compiled.py", "-k", "faces_around_every_slot"], {}),
+    "reembed-slots-shifted": (
+        "vpffd_addon/binding.py",
+        "        base[keyed] = first_block * bs - run_start\n",
+        "        base[keyed] = first_block * bs - run_start + 1\n",
+        ["tests/test_core_compiled.py", "-k", "re_embedding or bit_for_bit"], {}),
     "reembed-island-origin": (
         "vpffd_addon/layout_kernels.py",
         "            r = 0 if single else part_rows[v]\n            for a in range(3):\n                R[v, a] = P[v, a] - origin[r, a]",

@@ -290,6 +290,70 @@ def test_a_re_embedding_on_any_number_of_threads_is_numpys_bit_for_bit(kernels, 
         np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
 
 
+@pytest.mark.parametrize("team_parts", [99, 3])
+@pytest.mark.parametrize("threads", [1, 2, 3, 5])
+def test_a_binds_faces_around_every_slot_are_its_vertexs_renumbered_on_any_number_of_threads(
+        kernels, threads, team_parts, monkeypatch):
+    # A compiled bind renumbers the faces around every vertex into the slots' order in the hand-over
+    # that writes the slots' values and sums the faces' terms, cut by cost (`layout.mixed_parts`).
+    # Checked in NumPy from the topology's faces around every vertex: every slot holds its
+    # vertex's entries as slots, in order, and whether they are a ring; padding slots hold none.
+    # Three islands and an open one (open fans keep their faces as pairs).
+    v, f = vp.icosphere(6, 0.5)
+    v2, f2 = vp.icosphere(5, 0.2)
+    verts = np.vstack([v, v2 + [0.35, 0.1, 0.0], v2 * 1.5 - [0.3, 0.2, 0.6], v2 * 0.5])
+    tris = np.vstack([f, f2 + len(v), f2 + len(v) + len(v2), (f2 + len(v) + 2 * len(v2))[:-300]])
+    lat = vp.Lattice((5, 6, 4), ("CATMULL_ROM", "LINEAR", "BSPLINE"))
+    topology = vp.Topology(tris, len(verts))
+    moved = (verts * 1.05 + [0.02, -0.01, 0.03]).astype(np.float32)
+    monkeypatch.setattr(compiled, "TEAM_PARTS", team_parts)
+    previous = parallel.set_workers(threads)
+    try:
+        b = vp.bind(lat, moved, topology.tris, dtype=np.float32, topology=topology)
+    finally:
+        parallel.set_workers(previous)
+    assert len(b.vertex_parts) == threads
+    start, entries, ring = b.incidence
+    rstart, entries_v, ring_v = compiled.vertex_rings(topology)
+    assert 0 < ring_v.sum() < len(ring_v)               # (rings, and pairs at the open fans)
+    n_slots = b.x0.shape[1]
+    count = np.zeros(n_slots, np.int64)
+    count[b.slot] = np.diff(rstart)
+    assert start[0] == 0 and np.array_equal(np.diff(start), count) and n_slots > len(verts)
+    where = np.repeat(start[b.slot] - rstart[:-1], np.diff(rstart)) + np.arange(rstart[-1])
+    np.testing.assert_array_equal(entries[where], b.slot[entries_v[:rstart[-1]]])
+    assert len(entries) == rstart[-1]
+    want = np.zeros(n_slots, np.int8)
+    want[b.slot] = ring_v
+    np.testing.assert_array_equal(ring, want)
+
+
+@pytest.mark.parametrize("n_parts", [1, 2, 3, 7, 16])
+def test_mixed_parts_cover_every_task_once_in_order(n_parts):
+    # Passes laid end to end and cut by cost: every unit of every task in exactly one part, each
+    # part's pieces in the tasks' order, and the parts' costs even within one unit.
+    from vpffd_addon import layout
+    rng = np.random.default_rng(n_parts)
+    for _ in range(50):
+        tasks = [(name, int(rng.integers(0, 5000)), float(rng.uniform(0.1, 50.0))) for name in ("a", "b", "c")]
+        if rng.random() < 0.2:      # (a task that costs nothing, as the faces around no face)
+            i = int(rng.integers(0, 3))
+            tasks[i] = (tasks[i][0], tasks[i][1], 0.0)
+        parts = layout.mixed_parts(tasks, n_parts)
+        assert len(parts) == n_parts
+        for name, n, w in tasks:
+            got = [(a, z) for part in parts for (m, a, z) in part if m == name]
+            assert all(z > a for a, z in got)
+            covered = np.concatenate([np.arange(a, z) for a, z in got]) if got else np.zeros(0, int)
+            np.testing.assert_array_equal(covered, np.arange(n))
+        order = {"a": 0, "b": 1, "c": 2}
+        for part in parts:
+            assert [order[m] for m, _, _ in part] == sorted(order[m] for m, _, _ in part)
+        cost = [sum((z - a) * dict((m, w) for m, _, w in tasks)[m] for m, a, z in part) for part in parts]
+        total = sum(n * w for _, n, w in tasks)
+        assert max(cost) - total / n_parts <= 3 * max(w for _, _, w in tasks)
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_a_solve_on_any_number_of_threads_is_the_same_bit_for_bit(kernels, dtype, monkeypatch):
     # From compiled.TEAM_PARTS parts on (here 4), every pass runs as one call on numba's own

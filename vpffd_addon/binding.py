@@ -34,10 +34,11 @@ class BindingBase:
     `n_islands`, `island_labels` (V,), `rest_island_volumes` (n_islands,), `influence` (V,),
     `n_outside` (vertices outside the lattice's box or the cage's region), `nbytes`.
 
-    Set on a lattice binding by the compiled steps on first use (absent until then; `compiled`):
-    `incidence` (start (n_slots + 1,) int64, entries int32, ring (n_slots,) int8), the faces
-    around every slot as rings of neighbours where they close a fan, as pairs elsewhere
-    (`solve_kernels.vertex_rings`);
+    Set on a lattice binding by a compiled bind, or by the compiled steps on first use (absent
+    until then; `compiled`): `incidence` (start (n_slots + 1,) int64, entries uint32, ring
+    (n_slots,) int8), the faces around every slot as rings of neighbours where they close a fan,
+    as pairs elsewhere (`solve_kernels.vertex_rings`).
+    Set by the compiled steps on first use:
     `vertex_rows` (V,) int64, the row of `island_origin` of every vertex; `converted` (dtype,
     params (4, n_slots), x0 (3, n_slots)), the binding's values in another precision.
     """
@@ -299,6 +300,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     n_cells = dims[0] * dims[1] * dims[2]
     n_keys = n_cells * b.n_islands
     run_cells = None                # (the unclamped cell of every run, (runs, 3), where local)
+    sorting = None                  # (a counting sort to finish once the blocks are known)
     if kernels:
         verts = np.ascontiguousarray(verts)
         # (the row of `island_origin` of each vertex, as `compiled.vertex_rows`)
@@ -306,10 +308,11 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     if kernels and n_keys <= max(4 * V, 1 << 16):
         # A counting sort over the keys (the same order), which also gives the runs; the cells
         # are made in its first pass (with the coordinates relative to the volume origins), and
-        # every run's cells read back from its key.
+        # every run's cells read back from its key. Its second pass (below, once the blocks are
+        # known) places every vertex in the order and in its slot at once.
         islands = np.ascontiguousarray(labels, np.int64) if b.n_islands > 1 else _NO_LABELS
-        start, order, rel = layout.cell_order(kernels, verts, lattice, islands, np.array(dims, np.int64),
-                                              n_keys, b.island_origin, rows)
+        start, rel, sorting = layout.cell_keys(kernels, verts, lattice, islands, np.array(dims, np.int64),
+                                               n_keys, b.island_origin, rows)
         run_len = np.diff(start)
         keyed = np.flatnonzero(run_len > 0)
         run_start = start[:-1][keyed]
@@ -335,6 +338,11 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     first_block = np.cumsum(blocks_per_run) - blocks_per_run
     n_slots = n_blocks * bs
     b.block_size = bs
+    placed = None
+    if sorting is not None:
+        base = np.zeros(n_keys, np.int64)
+        base[keyed] = first_block * bs - run_start
+        order, *placed = layout.place_slots(kernels, sorting, base, compiled.vertex_rings(b.topology)[0], n_slots)
     runs = (order, run_start, run_len, first_block)
     local = kernels is not None or all(len(tap) > 2 for tap in taps)
     # For what is made on first use (`_LAZY`): the positions and weights as bound, copied where
@@ -342,7 +350,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.source = tuple(a.copy() if given is not None and np.may_share_memory(a, given) else a
                       for a, given in ((verts, rest_verts), (s, influence)))
     if kernels:
-        faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels)
+        faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, placed)
     else:
         _numpy_blocks(b, taps, s, runs, n_blocks)
         if local:
@@ -444,19 +452,31 @@ def _numpy_weights(b, taps, s, n_blocks):
     b.ww = per_block(taps[2][1] * s[:, None])
 
 
-def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rel, kernels):
+def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, placed=None):
     """The slots, what every slot holds (the compiled solve's `params`, the influence and x0) and
     the faces' volumes (`face_volume_sums`), by the compiled kernels on the worker threads;
     NumPy's stored weights are left to be made if something asks for them
-    (`Binding._materialise`). Returns (face_vol, sums) as `slot_faces`."""
+    (`Binding._materialise`). The faces around every slot are made too (b.incidence, as
+    `compiled.incidence`). `placed`: (slot, sorted_slot, where every slot's entries begin) where
+    the counting sort made them (`layout.place_slots`). Returns (face_vol, sums) as `slot_faces`."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
-    b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
-    layout.slots(kernels, runs, bs, b.slot, sorted_slot)
+    around = compiled.vertex_rings(b.topology)
+    if placed is None:
+        b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
+        layout.slots(kernels, runs, bs, b.slot, sorted_slot)
+        start = np.zeros(n_slots + 1, np.int64)
+        kernels["slot_incidence_start"](b.slot, around[0], start)
+    else:
+        b.slot, sorted_slot, start = placed
     b.slot_influence, b.params, b.x0 = np.zeros(n_slots, dt), np.zeros((4, n_slots), dt), np.zeros((3, n_slots), dt)
     # (one island: only the terms' sums, in the chunks of `volume.chunked_sums`)
     face_vol = None if b.n_islands == 1 else np.empty(b.topology.tris_t.shape[1])
-    b.n_outside, chunks = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot, rel,
-                                                       face_vol)
+    # The faces around every slot too (`compiled.incidence`, which the compiled solve reads), in
+    # the same hand-over: a mesh moving through the lattice needs them anew on every frame.
+    incidence = (start, np.empty(len(around[1]), np.uint32), np.zeros(n_slots, np.int8))
+    b.n_outside, chunks = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot, rows,
+                                                       rel, face_vol, (around,) + incidence)
+    b.incidence = incidence
     if face_vol is None:
         return None, np.cumsum(chunks, axis=0)[-1][:, None]
     return face_vol, _volume_sums(b, face_vol)

@@ -304,14 +304,33 @@ def _smoke(kernels):
         start, place = np.empty(K + 1, np.int64), np.empty((2, K), np.int64)
         kernels["key_starts"](counts, start, place)
         place_start = place.copy()
-        got = np.empty(V, np.int64)
+        # (runs in blocks of 2 slots, as `slots` lays them out; every vertex 0 to 2 entries)
+        run_len = np.diff(start)
+        blocks = -(-run_len // 2)
+        base = (np.cumsum(blocks) - blocks) * 2 - start[:-1]
+        entry_start = np.concatenate([[0], np.cumsum(np.arange(V) % 3)]).astype(np.int64)
+        p_n = 2 * int(blocks.sum())
+        got, p_slot, p_sorted = np.empty(V, np.int64), np.empty(V, np.int64), np.empty(V, np.int64)
+        count = np.zeros(p_n + 1, np.int64)
+        placed = (key, place, base, entry_start, got, p_slot, p_sorted, count)
         for j, (v0, v1) in enumerate(((0, len(x)), (len(x), V))):
-            kernels["place_keys"](key, place[j], got, v0, v1)
-        _team_agrees(kernels, "place_keys", (key, place_start, got), V, (2,), edges=(0, len(x), V))
+            kernels["place_slots"](*placed[:1], place[j], *placed[2:], v0, v1)
+        _team_agrees(kernels, "place_slots", placed[:1] + (place_start,) + placed[2:], V, (4, 5, 6, 7),
+                     edges=(0, len(x), V))
         want = (cells[2] * dims[1] + cells[1]) * dims[0] + cells[0] + (labels * (K // k) if k > 1 else 0)
         if not (np.array_equal(got, np.argsort(want, kind="stable")) and start[-1] == V
                 and np.array_equal(key, want)):
             raise RuntimeError("the counting sort's keys or order differ from NumPy's")
+        keyed = np.flatnonzero(run_len)
+        want_slot, want_sorted = np.empty(V, np.int64), np.empty(V, np.int64)
+        kernels["slots"](got, start[keyed], run_len[keyed], (np.cumsum(blocks) - blocks)[keyed], 2, want_slot,
+                         want_sorted, 0, len(keyed))
+        want_start = np.zeros(p_n + 1, np.int64)
+        kernels["slot_incidence_start"](want_slot, entry_start, want_start)
+        kernels["running_sum"](count)
+        if not (np.array_equal(p_slot, want_slot) and np.array_equal(p_sorted, want_sorted)
+                and np.array_equal(count, want_start)):
+            raise RuntimeError("the slots placed with the sort differ from the slots pass's")
     xyz = np.stack([x, -x, 2 * x], 1)
     for labels in (np.zeros(0, np.int64), (np.arange(len(x)) % 2).astype(np.int64)):
         k = 1 if len(labels) == 0 else 2
@@ -329,17 +348,21 @@ def _smoke(kernels):
                     and np.array_equal(hi, np.array([want[rows == r].max(0) for r in range(k)]))
                     and np.array_equal(rel, want - (0.5 * (lo + hi))[rows])):
                 raise RuntimeError("the checked positions and their bounds differ from NumPy's")
+    origin = np.array([[0.1, -0.2, 0.3], [-0.4, 0.5, 0.7]])
     for dtype in (np.float32, np.float64):
-        params, influence, x0 = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype), np.zeros((3, n_slots), dtype)
-        xyz = np.stack([x, x, x], 1)
-        outside = kernels["sorted_values"](order, sorted_slot, xyz, xyz, np.ones(len(x)), np.array([5, 5, 5], np.int64),
-                                           np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0, 0, len(x))
-        if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], x.astype(dtype))
-                and outside == 3):                  # (-0.9, 0.77 and 1.6)
-            raise RuntimeError("the per-slot values are not at their slots")
-        _team_agrees(kernels, "sorted_values", (order, sorted_slot, xyz, xyz, np.ones(len(x)), np.array([5, 5, 5], np.int64),
-                                                np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0),
-                     len(x), (9, 10, 11), check=lambda got: got[:, 0].sum() == 3)
+        # (x0 relative to one origin, then to each vertex's island's row of two)
+        for rows in (np.zeros(0, np.int64), (np.arange(len(x)) % 2).astype(np.int64)):
+            params, influence = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype)
+            x0 = np.zeros((3, n_slots), dtype)
+            xyz = np.stack([x, x, x], 1)
+            values = (order, sorted_slot, xyz, origin, rows, np.ones(len(x)), np.array([5, 5, 5], np.int64),
+                      np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0)
+            outside = kernels["sorted_values"](*values, 0, len(x))
+            want = x - origin[rows if len(rows) else 0, 2]
+            if not (np.array_equal(params[0, slot], t.astype(dtype)) and np.array_equal(x0[2, slot], want.astype(dtype))
+                    and outside == 3):                  # (-0.9, 0.77 and 1.6)
+                raise RuntimeError("the per-slot values are not at their slots")
+            _team_agrees(kernels, "sorted_values", values, len(x), (10, 11, 12), check=lambda got: got[:, 0].sum() == 3)
         _smoke_solve(kernels, dtype)
 
 
@@ -721,8 +744,10 @@ def _along(e, X):
 def incidence(binding):
     """The faces around every slot of `binding` as the gradient passes read them
     (`solve_kernels.vertex_rings`): (start (n_slots + 1,) int64, entries uint32, ring (n_slots,)
-    int8), made once per binding (kept as `binding.incidence`) from its topology's faces around
-    every vertex (made once per topology: a mesh re-embedded on every frame only renumbers them).
+    int8), kept as `binding.incidence`: a compiled bind makes them with its slots
+    (`layout.slot_values_and_faces`), any other binding here on first use, from its topology's
+    faces around every vertex (made once per topology: a mesh re-embedded on every frame only
+    renumbers them).
     The entries are unsigned because numba checks every signed index for a negative value (to
     count it from the end) and the gradient passes gather by them: 5-8% of those passes."""
     got = getattr(binding, "incidence", None)

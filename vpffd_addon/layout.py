@@ -57,14 +57,15 @@ def axis_cells(kernels, verts, lattice):
     return cells
 
 
-def cell_order(kernels, verts, lattice, labels, dims, n_keys, origin, rows):
-    """The vertices in stable order of their key (island, cell), as np.argsort(kind="stable") of
-    `binding.bind_lattice`'s keys, by a counting sort whose first pass makes every vertex's cells
-    (`bases.axis_cells`, every axis local) and key from its coordinates verts (V, 3) float64
-    (finite), and their coordinates relative to the volume origins (as `relative`: origin (k, 3),
-    rows (V,) int64 or empty). labels (V,) int64 (empty: one island), dims (3,) int64 the cells
-    per axis (n + 6), n_keys = islands x cells. Returns (start (n_keys + 1,) where every key's
-    vertices begin, order (V,) int64, rel (V, 3) float64)."""
+def cell_keys(kernels, verts, lattice, labels, dims, n_keys, origin, rows):
+    """The first half of a counting sort of the vertices by their key (island, cell), the stable
+    order of `binding.bind_lattice`'s keys: one pass (`layout_kernels.cell_keys`) makes every
+    vertex's cells (`bases.axis_cells`, every axis local) and key from its coordinates verts
+    (V, 3) float64 (finite), counts the keys, and writes the coordinates relative to the volume
+    origins (as `relative`: origin (k, 3), rows (V,) int64 or empty); then where every key's
+    vertices begin. labels (V,) int64 (empty: one island), dims (3,) int64 the cells per axis
+    (n + 6), n_keys = islands x cells. Returns (start (n_keys + 1,), rel (V, 3) float64, sorting:
+    what `place_slots` needs to finish the sort)."""
     V = len(verts)
     parts = parallel.split(V, V)
     if len(parts) > 1 and n_keys * len(parts) > _KEYS_PER_VERTEX * V:
@@ -76,9 +77,24 @@ def cell_order(kernels, verts, lattice, labels, dims, n_keys, origin, rows):
                   labels, dims, origin, rows, rel, key, counts, per_part=(10,), kernels=kernels)
     start, place = np.empty(n_keys + 1, np.int64), np.empty((P, n_keys), np.int64)
     kernels["key_starts"](counts, start, place)
-    order = np.empty(V, np.int64)
-    compiled.over("place_keys", parts, key, place, order, per_part=(1,), kernels=kernels)
-    return start, order, rel
+    return start, rel, (key, place, parts)
+
+
+def place_slots(kernels, sorting, base, entry_start, n_slots):
+    """The second half of `cell_keys`' sort, with the slots (`layout_kernels.place_slots`): every
+    vertex at its key's place in the order and in its slot, base (n_keys,) int64 every key's first
+    slot less where its vertices begin (keys of no vertex: any); and where the entries of the
+    faces around every slot begin, from where every vertex's begin (entry_start (V + 1,)). Returns
+    (order (V,), slot (V,), sorted_slot (V,), the entries' starts (n_slots + 1,)), as the `slots`
+    pass and `solve_kernels.slot_incidence_start` make them."""
+    key, place, parts = sorting
+    V = len(key)
+    order, slot, sorted_slot = np.empty(V, np.int64), np.empty(V, np.int64), np.empty(V, np.int64)
+    count = np.zeros(n_slots + 1, np.int64)
+    compiled.over("place_slots", parts, key, place, base, entry_start, order, slot, sorted_slot, count,
+                  per_part=(1,), kernels=kernels)
+    kernels["running_sum"](count)
+    return order, slot, sorted_slot, count
 
 
 def slots(kernels, runs, bs, slot, sorted_slot):
@@ -92,13 +108,50 @@ def slots(kernels, runs, bs, slot, sorted_slot):
                   sorted_slot, kernels=kernels)
 
 
-def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel, face_vol):
+#: What one unit of each pass that shares the slot pass's hand-over costs one thread, in ns (a ring
+#: entry renumbered, a face's volume term, a vertex's slot values; measured at 163,842 vertices,
+#: 2026-12-05, `benchmarks.reembed_passes`): only the balance of the parts depends on them, never
+#: a result.
+_NS_PER = {"fill": 0.9, "faces": 6.4, "values": 9.8}
+
+
+def mixed_parts(tasks, n_parts):
+    """Cut a run of passes into n_parts parts of about equal cost: tasks [(name, units, ns per
+    unit)], laid end to end in that order. Returns [[(name, start, stop), ...] per part], every
+    task's units 0..units-1 covered once, in order, each part's pieces in the tasks' order."""
+    total = sum(n * w for _, n, w in tasks)
+    out = [[] for _ in range(n_parts)]
+    offset = 0.0
+    for name, n, w in tasks:
+        if n <= 0:
+            continue
+        if w <= 0 or total <= 0:    # (no cost: whole, in the part where it falls)
+            j = min(n_parts - 1, int(n_parts * offset / total)) if total > 0 else 0
+            out[j].append((name, 0, n))
+            continue
+        cuts = [min(n, max(0, int(round((total * j / n_parts - offset) / w)))) if 0 < j < n_parts
+                else (0 if j == 0 else n) for j in range(n_parts + 1)]
+        for j in range(n_parts):
+            if cuts[j + 1] > cuts[j]:
+                out[j].append((name, cuts[j], cuts[j + 1]))
+        offset += n * w
+    return out
+
+
+def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rows, rel, face_vol, around=None):
     """What every slot holds (b.params, b.slot_influence, b.x0: `layout_kernels.sorted_values`)
-    and the faces' float64 volume terms from rel (V, 3): into face_vol (F,) where it is given,
+    (x0 from verts (V, 3) less the origin of its row `rows` (V,) of b.island_origin, or empty
+    for its only row) and the faces' float64 volume terms from rel (V, 3) (the same differences,
+    made by `cell_keys`): into face_vol (F,) where it is given,
     else only their sums in chunks (`layout_kernels.face_volume_sums`, for one island: the terms
-    themselves are read by nothing else), each thread a part of the sorted vertices and then a
-    part of the faces. Returns (how many vertices lie outside the lattice, the chunks' sums
-    (n_chunks, 2) or None)."""
+    themselves are read by nothing else); with `around` = (the topology's faces around every
+    vertex, `compiled.vertex_rings`; start (n_slots + 1,) made from them; entries, ring to fill)
+    also the faces around every slot (`solve_kernels.slot_incidence_fill`, what
+    `compiled.incidence` makes). On the Python threads all of it is one hand-over, cut into parts
+    of about equal cost (`mixed_parts`): the renumbering writes every slot's entries where its
+    vertex takes them, so split by vertices its parts would write into the same cache lines, and
+    two threads took as long as one; a part of its own keeps it from the other threads.
+    Returns (how many vertices lie outside the lattice, the chunks' sums (n_chunks, 2) or None)."""
     V, tris_t = b.n_verts, b.topology.tris_t
     F = tris_t.shape[1]
     vparts = parallel.split(V, V)
@@ -106,25 +159,35 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rel
         chunk = volume.FACE_CHUNK
         sums = np.empty((max(1, -(-F // chunk)), 2))
         fparts = parallel.split(len(sums), V)
-        faces = ("face_volume_sums", (rel, tris_t, chunk, sums))
+        faces = ("face_volume_sums", (rel, tris_t, chunk, sums), len(sums), _NS_PER["faces"] * chunk)
     else:
         sums, fparts = None, parallel.split(F, V)
-        faces = ("face_volumes", (rel, tris_t, face_vol))
+        faces = ("face_volumes", (rel, tris_t, face_vol), F, _NS_PER["faces"])
     shape = np.array(lattice.shape, np.int64)
     eps = 1e-6 * lattice.size
 
-    values = (order, sorted_slot, verts, rel, s, shape, lattice.lo, lattice.hi, eps, b.params, b.slot_influence, b.x0)
+    values = (order, sorted_slot, verts, b.island_origin, rows, s, shape, lattice.lo, lattice.hi, eps, b.params,
+              b.slot_influence, b.x0)
+    fill = None if around is None else (b.slot, *around[0], *around[1:])
     if compiled.teams("sorted_values", vparts, kernels):
         got = compiled.over("sorted_values", vparts, *values, returns=1, kernels=kernels)
         compiled.over(faces[0], fparts, *faces[1], kernels=kernels)
+        if fill is not None:
+            compiled.over("slot_incidence_fill", vparts, *fill, kernels=kernels)
         return int(sum(part[0] for part in got)), sums
-    face_kernel = kernels[faces[0]]
+    tasks = [("values", V, _NS_PER["values"]), (faces[0], faces[2], faces[3])]
+    if fill is not None:
+        tasks.insert(0, ("fill", V, _NS_PER["fill"] * len(around[0][1]) / max(V, 1)))
+    calls = {"values": (kernels["sorted_values"], values), faces[0]: (kernels[faces[0]], faces[1]),
+             "fill": (kernels["slot_incidence_fill"], fill)}
 
-    def part(j):        # (both kernels in one hand-over per part)
+    def part(pieces):   # (every pass of the part in one hand-over)
         outside = 0
-        if j < len(vparts):
-            outside = kernels["sorted_values"](*values, vparts[j].start, vparts[j].stop)
-        if j < len(fparts):
-            face_kernel(*faces[1], fparts[j].start, fparts[j].stop)
+        for name, a, z in pieces:
+            fn, args = calls[name]
+            got = fn(*args, a, z)
+            if name == "values":
+                outside += got
         return outside
-    return sum(parallel.run(part, list(range(max(len(vparts), len(fparts)))))), sums
+    pieces = [p for p in mixed_parts(tasks, len(vparts)) if p]
+    return sum(parallel.run(part, pieces)), sums

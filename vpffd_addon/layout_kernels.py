@@ -46,16 +46,20 @@ def define(njit):
                 pos += 1
 
     @njit
-    def sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, eps, params, influence, x0, i0, i1):
+    def sorted_values(order, sorted_slot, verts, origin, rows, s, shape, lo, hi, eps, params, influence, x0, i0, i1):
         # Everything a slot holds, written in slot order from the vertices taken in sorted order
         # (positions i0..i1-1 of it: a worker thread's part)
         # (a row read each, where writing at scattered slots would touch a line per row of the
         # outputs): the compiled solve's per-slot parameters (4, n_slots) (t along each axis, as
         # `bases.axis_cells`, and the influence s), the influence (n_slots,) and the rest
-        # coordinates x0 (3, n_slots) relative to the volume origins (rel (V, 3)), in the
-        # binding's precision. Returns how many vertices lie outside the lattice's box by more
-        # than eps, as `Lattice.outside_count` (an axis of one point has no outside), in the part.
+        # coordinates x0 (3, n_slots) relative to the volume origins (origin (k, 3), rows (V,)
+        # the row of each vertex, or empty for origin[0]: the subtraction that `cell_keys` makes,
+        # so the same values, without reading its rows of 24 bytes from a second array at every
+        # scattered vertex), in the binding's precision. Returns how many vertices lie outside
+        # the lattice's box by more than eps, as `Lattice.outside_count` (an axis of one point
+        # has no outside), in the part.
         outside = 0
+        single = rows.shape[0] == 0
         du0 = (hi[0] - lo[0]) / (shape[0] - 1)
         du1 = (hi[1] - lo[1]) / (shape[1] - 1)
         du2 = (hi[2] - lo[2]) / (shape[2] - 1)
@@ -63,19 +67,20 @@ def define(njit):
         for i in range(part_order.shape[0]):
             v = part_order[i]
             sl = part_slots[i]
+            r = 0 if single else rows[v]
             out = False
             for a in range(3):
                 x = verts[v, a]
                 if shape[a] > 1 and (x < lo[a] - eps or x > hi[a] + eps):
                     out = True
                 du = du0 if a == 0 else (du1 if a == 1 else du2)
-                u = (verts[v, a] - lo[a]) / du
+                u = (x - lo[a]) / du
                 if u < -3.0:
                     u = -3.0
                 elif u > shape[a] + 2.0:
                     u = shape[a] + 2.0
                 params[a, sl] = u - np.floor(u)
-                x0[a, sl] = rel[v, a]
+                x0[a, sl] = x - origin[r, a]
             params[3, sl] = s[v]
             influence[sl] = s[v]
             if out:
@@ -195,13 +200,32 @@ def define(njit):
         start[counts.shape[1]] = pos
 
     @njit
-    def place_keys(key, place, order, v0, v1):
-        # Vertices v0..v1-1 into the order at their key's next place (place (K,), a part's row).
-        part = key[v0:v1]
+    def place_slots(key, place, base, entry_start, order, slot, sorted_slot, count, v0, v1):
+        # Vertices v0..v1-1 into the order at their key's next place (place (K,), a part's row)
+        # and their slots: a run of one key fills its blocks in order, so the vertex at place p
+        # of key k has slot base[k] + p (base: the run's first slot less where the key begins;
+        # the `slots` pass without a pass of its own). In the same loop each vertex's count of
+        # entries of the faces around it (entry_start (V + 1,): where they begin) into
+        # count[slot + 1], which summed gives where every slot's entries begin
+        # (`solve_kernels.slot_incidence_start`, read here in the vertices' order).
+        part, part_slot, starts = key[v0:v1], slot[v0:v1], entry_start[v0:v1 + 1]
         for i in range(part.shape[0]):
             k = part[i]
-            order[place[k]] = v0 + i
-            place[k] += 1
+            p = place[k]
+            sl = p + base[k]
+            order[p] = v0 + i
+            sorted_slot[p] = sl
+            part_slot[i] = sl
+            count[sl + 1] = starts[i + 1] - starts[i]
+            place[k] = p + 1
+
+    @njit
+    def running_sum(a):
+        # a[i] += a[i - 1] in place, in order (np.cumsum, which took three times as long).
+        total = 0
+        for i in range(a.shape[0]):
+            total += a[i]
+            a[i] = total
 
     @njit
     def components(tris_t, parent, labels):
@@ -287,9 +311,42 @@ def define(njit):
         bad = 0
         one = labels.shape[0] == 0
         P, O = verts[v0:v1], out[v0:v1]
-        part_labels = labels if one else labels[v0:v1]
+        if one:
+            # (one island: the bounds in registers; stored in lo and hi at every vertex, which
+            # the compiler cannot tell from out, the pass took 2.7 times its bytes' time)
+            l0, l1, l2 = np.inf, np.inf, np.inf
+            h0, h1, h2 = -np.inf, -np.inf, -np.inf
+            for v in range(P.shape[0]):
+                x = np.float64(P[v, 0])
+                y = np.float64(P[v, 1])
+                z = np.float64(P[v, 2])
+                O[v, 0] = x
+                O[v, 1] = y
+                O[v, 2] = z
+                # (the comparisons of the loop below, so the same bounds, signed zeros too)
+                if np.isfinite(x):
+                    if x < l0:
+                        l0 = x
+                    if x > h0:
+                        h0 = x
+                if np.isfinite(y):
+                    if y < l1:
+                        l1 = y
+                    if y > h1:
+                        h1 = y
+                if np.isfinite(z):
+                    if z < l2:
+                        l2 = z
+                    if z > h2:
+                        h2 = z
+                if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                    bad += 1
+            lo[0, 0], lo[0, 1], lo[0, 2] = l0, l1, l2
+            hi[0, 0], hi[0, 1], hi[0, 2] = h0, h1, h2
+            return bad
+        part_labels = labels[v0:v1]
         for v in range(P.shape[0]):
-            r = 0 if one else part_labels[v]
+            r = part_labels[v]
             finite = True
             for a in range(3):
                 x = np.float64(P[v, a])
@@ -318,7 +375,7 @@ def define(njit):
     return {"slots": slots, "sorted_values": sorted_values, "face_volumes": face_volumes,
             "face_volume_sums": face_volume_sums,
             "axis_cells": axis_cells, "positions": positions, "relative": relative,
-            "cell_keys": cell_keys, "key_starts": key_starts, "place_keys": place_keys,
+            "cell_keys": cell_keys, "key_starts": key_starts, "place_slots": place_slots, "running_sum": running_sum,
             "components": components, "closed": closed}
 
 
@@ -353,10 +410,11 @@ def cell_keys_team(edges, verts, n, lo, hi, labels, dims, origin, rows, rel, key
                      edges[j], edges[j + 1])
 
 
-def place_keys_team(edges, key, place, order):
+def place_slots_team(edges, key, place, base, entry_start, order, slot, sorted_slot, count):
     # place (parts, K): every part's own places.
     for j in prange(edges.shape[0] - 1):
-        _k_place_keys(key, place[j], order, edges[j], edges[j + 1])  # noqa: F821
+        _k_place_slots(key, place[j], base, entry_start, order, slot, sorted_slot, count,  # noqa: F821
+                       edges[j], edges[j + 1])
 
 
 def slots_team(edges, order, run_start, run_len, first_block, bs, slot, sorted_slot):
@@ -365,10 +423,11 @@ def slots_team(edges, order, run_start, run_len, first_block, bs, slot, sorted_s
         _k_slots(order, run_start, run_len, first_block, bs, slot, sorted_slot, edges[j], edges[j + 1])  # noqa: F821
 
 
-def sorted_values_team(edges, got, order, sorted_slot, verts, rel, s, shape, lo, hi, eps, params, influence, x0):
+def sorted_values_team(edges, got, order, sorted_slot, verts, origin, rows, s, shape, lo, hi, eps, params, influence,
+                       x0):
     # got (parts, 1): every part's count of vertices outside the lattice.
     for j in prange(edges.shape[0] - 1):
-        got[j, 0] = _k_sorted_values(order, sorted_slot, verts, rel, s, shape, lo, hi, eps,  # noqa: F821
+        got[j, 0] = _k_sorted_values(order, sorted_slot, verts, origin, rows, s, shape, lo, hi, eps,  # noqa: F821
                                      params, influence, x0, edges[j], edges[j + 1])
 
 
@@ -382,5 +441,5 @@ def face_volume_sums_team(edges, rel, tris_t, chunk, sums):
         _k_face_volume_sums(rel, tris_t, chunk, sums, edges[j], edges[j + 1])  # noqa: F821
 
 
-_TEAMS = ("positions", "relative", "axis_cells", "cell_keys", "place_keys", "slots", "sorted_values",
+_TEAMS = ("positions", "relative", "axis_cells", "cell_keys", "place_slots", "slots", "sorted_values",
           "face_volumes", "face_volume_sums")

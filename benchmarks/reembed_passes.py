@@ -171,8 +171,8 @@ def markdown(report):
                        f"({sum(p['floor_ms'] for p in r['passes'].values()):.2f})" for r in rows)
     both = {k: sum(p[k] for p in rows[0]["passes"].values()) for k in ("read", "written")}
     lines.append(f"| the passes | | {mb(both)} | {total} |")
-    lines.append("| the rest (where every slot's faces begin, the runs, the blocks' control points, "
-                 "in NumPy and on one thread) | | | " + " | ".join(
+    lines.append("| the rest (the runs and their blocks, the blocks' control points, the checks: NumPy, "
+                 "one thread) | | | " + " | ".join(
                      f"{r['whole_ms'] - sum(p['ms'] for p in r['passes'].values()):.2f}" for r in rows) + " |")
     lines.append("| the whole re-embedding | | | " + " | ".join(f"{r['whole_ms']:.2f}" for r in rows) + " |")
     return "\n".join(lines)

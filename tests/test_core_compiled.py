@@ -290,20 +290,30 @@ def test_a_re_embedding_on_any_number_of_threads_is_numpys_bit_for_bit(kernels, 
         np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
 
 
+@pytest.mark.parametrize("many", [False, True])
 @pytest.mark.parametrize("team_parts", [99, 3])
 @pytest.mark.parametrize("threads", [1, 2, 3, 5])
 def test_a_binds_faces_around_every_slot_are_its_vertexs_renumbered_on_any_number_of_threads(
-        kernels, threads, team_parts, monkeypatch):
+        kernels, threads, team_parts, many, monkeypatch):
     # A compiled bind renumbers the faces around every vertex into the slots' order in the hand-over
     # that writes the slots' values and sums the faces' terms, cut by cost (`layout.mixed_parts`).
     # Checked in NumPy from the topology's faces around every vertex: every slot holds its
     # vertex's entries as slots, in order, and whether they are a ring; padding slots hold none.
-    # Three islands and an open one (open fans keep their faces as pairs).
-    v, f = vp.icosphere(6, 0.5)
-    v2, f2 = vp.icosphere(5, 0.2)
-    verts = np.vstack([v, v2 + [0.35, 0.1, 0.0], v2 * 1.5 - [0.3, 0.2, 0.6], v2 * 0.5])
-    tris = np.vstack([f, f2 + len(v), f2 + len(v) + len(v2), (f2 + len(v) + 2 * len(v2))[:-300]])
+    # Three islands and an open one (open fans keep their faces as pairs), where the counting sort
+    # places the slots; or 10,240 small closed islands, more keys than the counting sort takes
+    # (NumPy sorts, the slots pass places them).
     lat = vp.Lattice((5, 6, 4), ("CATMULL_ROM", "LINEAR", "BSPLINE"))
+    if many:
+        corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * 0.02
+        at = np.random.default_rng(4).uniform(-0.45, 0.43, (10240, 1, 3))
+        verts = (corners[None] + at).reshape(-1, 3)
+        tris = (np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])[None] + 4 * np.arange(10240)[:, None, None])
+        tris = tris.reshape(-1, 3)
+    else:
+        v, f = vp.icosphere(6, 0.5)
+        v2, f2 = vp.icosphere(5, 0.2)
+        verts = np.vstack([v, v2 + [0.35, 0.1, 0.0], v2 * 1.5 - [0.3, 0.2, 0.6], v2 * 0.5])
+        tris = np.vstack([f, f2 + len(v), f2 + len(v) + len(v2), (f2 + len(v) + 2 * len(v2))[:-300]])
     topology = vp.Topology(tris, len(verts))
     moved = (verts * 1.05 + [0.02, -0.01, 0.03]).astype(np.float32)
     monkeypatch.setattr(compiled, "TEAM_PARTS", team_parts)
@@ -313,9 +323,11 @@ def test_a_binds_faces_around_every_slot_are_its_vertexs_renumbered_on_any_numbe
     finally:
         parallel.set_workers(previous)
     assert len(b.vertex_parts) == threads
+    n_keys = b.n_islands * np.prod(np.array(lat.shape) + 6)
+    assert (n_keys > 4 * len(verts)) == many            # (the path asked for)
     start, entries, ring = b.incidence
     rstart, entries_v, ring_v = compiled.vertex_rings(topology)
-    assert 0 < ring_v.sum() < len(ring_v)               # (rings, and pairs at the open fans)
+    assert 0 < ring_v.sum() < len(ring_v) or many       # (rings, and pairs at the open fans)
     n_slots = b.x0.shape[1]
     count = np.zeros(n_slots, np.int64)
     count[b.slot] = np.diff(rstart)

@@ -342,7 +342,8 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     if sorting is not None:
         base = np.zeros(n_keys, np.int64)
         base[keyed] = first_block * bs - run_start
-        order, *placed = layout.place_slots(kernels, sorting, base, compiled.vertex_rings(b.topology)[0], n_slots)
+        order, *placed = layout.place_slots(kernels, sorting, base, compiled.vertex_rings(b.topology, kernels)[0],
+                                            n_slots)
     runs = (order, run_start, run_len, first_block)
     local = kernels is not None or all(len(tap) > 2 for tap in taps)
     # For what is made on first use (`_LAZY`): the positions and weights as bound, copied where
@@ -460,7 +461,7 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, p
     `compiled.incidence`). `placed`: (slot, sorted_slot, where every slot's entries begin) where
     the counting sort made them (`layout.place_slots`). Returns (face_vol, sums) as `slot_faces`."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
-    around = compiled.vertex_rings(b.topology)
+    around = compiled.vertex_rings(b.topology, kernels)
     if placed is None:
         b.slot, sorted_slot = np.empty(b.n_verts, np.int64), np.empty(b.n_verts, np.int64)
         layout.slots(kernels, runs, bs, b.slot, sorted_slot)

@@ -763,13 +763,14 @@ def incidence(binding):
     return got
 
 
-def vertex_rings(topology):
+def vertex_rings(topology, kernels=None):
     """The faces around every vertex of a `Topology` as rings where they form one closed fan, as
     pairs elsewhere (`solve_kernels.vertex_rings`): (start (V + 1,) int64, entries int32,
-    ring (V,) int8), made once per topology (kept on it)."""
+    ring (V,) int8), made once per topology (kept on it). `kernels`: the caller's (default: the
+    loaded ones)."""
     got = getattr(topology, "_vertex_rings", None)
     if got is None:
-        K = _state["kernels"]
+        K = _state["kernels"] if kernels is None else kernels
         around = getattr(topology, "_vertex_incidence", None)
         if around is None:          # (a NumPy topology, or one whose rings were made and dropped)
             start_v = np.zeros(topology.n_verts + 1, np.int64)

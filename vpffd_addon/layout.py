@@ -8,6 +8,8 @@ the same bit for bit on any number of threads (bounds by least and greatest, cou
 counting sort's places laid out part after part within every key). `kernels` is
 `compiled.bind_kernels(...)`; the kernels themselves are in `layout_kernels.py`.
 """
+import math
+
 import numpy as np
 
 from . import compiled, parallel, volume
@@ -125,7 +127,7 @@ def mixed_parts(tasks, n_parts):
     for name, n, w in tasks:
         if n <= 0:
             continue
-        if w <= 0 or total <= 0:    # (no cost: whole, in the part where it falls)
+        if not (w > 0 and total > 0 and math.isfinite(total / w)):   # (no cost: whole, where it falls)
             j = min(n_parts - 1, int(n_parts * offset / total)) if total > 0 else 0
             out[j].append((name, 0, n))
             continue
@@ -147,10 +149,11 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, row
     themselves are read by nothing else); with `around` = (the topology's faces around every
     vertex, `compiled.vertex_rings`; start (n_slots + 1,) made from them; entries, ring to fill)
     also the faces around every slot (`solve_kernels.slot_incidence_fill`, what
-    `compiled.incidence` makes). On the Python threads all of it is one hand-over, cut into parts
-    of about equal cost (`mixed_parts`): the renumbering writes every slot's entries where its
-    vertex takes them, so split by vertices its parts would write into the same cache lines, and
-    two threads took as long as one; a part of its own keeps it from the other threads.
+    `compiled.incidence` makes). On the Python threads all of it is one hand-over, the three laid
+    end to end and cut into parts of about equal cost (`mixed_parts`): the renumbering writes
+    every slot's entries where its vertex takes them, so split by vertices its parts write into
+    the same cache lines (two threads took as long as one); cut this way it stays whole in one
+    part on up to about five threads.
     Returns (how many vertices lie outside the lattice, the chunks' sums (n_chunks, 2) or None)."""
     V, tris_t = b.n_verts, b.topology.tris_t
     F = tris_t.shape[1]

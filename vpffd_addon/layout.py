@@ -161,10 +161,9 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, row
     if face_vol is None:
         chunk = volume.FACE_CHUNK
         sums = np.empty((max(1, -(-F // chunk)), 2))
-        fparts = parallel.split(len(sums), V)
         faces = ("face_volume_sums", (rel, tris_t, chunk, sums), len(sums), _NS_PER["faces"] * chunk)
     else:
-        sums, fparts = None, parallel.split(F, V)
+        sums = None
         faces = ("face_volumes", (rel, tris_t, face_vol), F, _NS_PER["faces"])
     shape = np.array(lattice.shape, np.int64)
     eps = 1e-6 * lattice.size
@@ -174,7 +173,7 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, row
     fill = None if around is None else (b.slot, *around[0], *around[1:])
     if compiled.teams("sorted_values", vparts, kernels):
         got = compiled.over("sorted_values", vparts, *values, returns=1, kernels=kernels)
-        compiled.over(faces[0], fparts, *faces[1], kernels=kernels)
+        compiled.over(faces[0], parallel.split(faces[2], V), *faces[1], kernels=kernels)
         if fill is not None:
             compiled.over("slot_incidence_fill", vparts, *fill, kernels=kernels)
         return int(sum(part[0] for part in got)), sums

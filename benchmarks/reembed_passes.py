@@ -5,7 +5,7 @@ it, on one thread, on two and on every core (or --max-threads), beside the bytes
 what those bytes take at the memory bandwidth this machine gives the same threads. The core
 alone, compiled kernels, no Blender:
 
-    python -m benchmarks.reembed_passes [--subdivisions 7] [--rounds 21] [--max-threads N]
+    python -m benchmarks.reembed_passes [--subdivisions 7] [--rounds 21] [--max-threads N] [--idle MS]
 
 An icosphere (163,842 vertices at 7 subdivisions) in a 6x6x6 B-spline lattice, float32, moved a
 little between re-embeddings. Per pass, the median over the rounds of its wall time (its hand-over
@@ -14,7 +14,11 @@ to the worker threads included). The bytes count every array the pass reads or w
 the floor is lower than what the memory could ever give them); the floor counts a written byte
 twice (the processor reads a line before it writes it), at the rate of a copy of 256 MB split
 over the same threads, counted the same way (`bandwidth`). docs/performance.md ("Re-embedding and
-the first bind") keeps the table. Prints JSON on stdout, a table on stderr.
+the first bind") keeps the table. `--idle MS`: the process sleeps MS milliseconds before every
+re-embedding (untimed), as a frame's re-embedding comes after Blender's evaluation, the last
+frame's solve and the rest of its update instead of straight after the last re-embedding; the
+same passes then take longer (performance.md, "A re-embedding in a frame"). Prints JSON on
+stdout, a table on stderr.
 """
 import argparse
 import collections
@@ -91,7 +95,7 @@ def bandwidth(threads, mb=256, rounds=5):
     return 24 * n / min(times) / 1e9
 
 
-def run(subdivisions=7, rounds=21, max_threads=None):
+def run(subdivisions=7, rounds=21, max_threads=None, idle_ms=0.0):
     if not compiled.load():
         raise SystemExit(f"compiled kernels unavailable: {compiled.why()}")
     v, f = vp.icosphere(subdivisions, 0.45)
@@ -130,6 +134,8 @@ def run(subdivisions=7, rounds=21, max_threads=None):
             whole = []
             try:
                 for k in range(rounds):
+                    if idle_ms > 0:
+                        time.sleep(idle_ms / 1e3)
                     t0 = time.perf_counter()
                     b, inc = reembed(k + 1)
                     whole.append(time.perf_counter() - t0)
@@ -151,7 +157,7 @@ def run(subdivisions=7, rounds=21, max_threads=None):
     finally:
         parallel.set_workers(previous)
     return {"vertices": b.n_verts, "faces": b.n_faces, "slots": int(b.x0.shape[1]), "ring_entries": len(inc[1]),
-            "lattice": list(LATTICE), "cores": cores, "rows": rows}
+            "lattice": list(LATTICE), "cores": cores, "idle_ms": idle_ms, "rows": rows}
 
 
 def markdown(report):
@@ -159,7 +165,9 @@ def markdown(report):
     head = " | ".join(f"{r['threads']} thread{'s' if r['threads'] > 1 else ''}: ms (floor)" for r in rows)
     lines = [f"{report['vertices']:,} vertices, {report['faces']:,} faces, {report['slots']:,} slots, "
              f"{report['ring_entries']:,} ring entries, {'x'.join(map(str, report['lattice']))} B-spline lattice, "
-             "float32; memory: " + ", ".join(f"{r['gb_per_s']} GB/s on {r['threads']}" for r in rows) + "\n",
+             "float32; memory: " + ", ".join(f"{r['gb_per_s']} GB/s on {r['threads']}" for r in rows)
+             + (f"; {report['idle_ms']:g} ms idle before every re-embedding" if report.get("idle_ms") else "")
+             + "\n",
              f"| pass | what it does | MB read / written | {head} |", "|---|---|---|" + "---|" * len(rows)]
 
     def mb(p):
@@ -183,8 +191,10 @@ def main(argv=None):
     ap.add_argument("--subdivisions", type=int, default=7)
     ap.add_argument("--rounds", type=int, default=21)
     ap.add_argument("--max-threads", type=int, default=None)
+    ap.add_argument("--idle", type=float, default=0.0, metavar="MS",
+                    help="sleep this many ms before every re-embedding, as between a frame's")
     args = ap.parse_args(argv)
-    report = run(args.subdivisions, args.rounds, args.max_threads)
+    report = run(args.subdivisions, args.rounds, args.max_threads, args.idle)
     print(markdown(report), file=sys.stderr)
     print(json.dumps(report, indent=1))
     return 0

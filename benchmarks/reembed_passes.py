@@ -5,7 +5,7 @@ it, on one thread, on two and on every core (or --max-threads), beside the bytes
 what those bytes take at the memory bandwidth this machine gives the same threads. The core
 alone, compiled kernels, no Blender:
 
-    python -m benchmarks.reembed_passes [--subdivisions 7] [--rounds 21] [--max-threads N] [--idle MS]
+    python -m benchmarks.reembed_passes [--subdivisions 7] [--rounds 21] [--max-threads N] [--idle MS] [--shuffle]
 
 An icosphere (163,842 vertices at 7 subdivisions) in a 6x6x6 B-spline lattice, float32, moved a
 little between re-embeddings. Per pass, the median over the rounds of its wall time (its hand-over
@@ -17,7 +17,9 @@ over the same threads, counted the same way (`bandwidth`). docs/performance.md (
 the first bind") keeps the table. `--idle MS`: the process sleeps MS milliseconds before every
 re-embedding (untimed), as a frame's re-embedding comes after Blender's evaluation, the last
 frame's solve and the rest of its update instead of straight after the last re-embedding; the
-same passes then take longer (performance.md, "A re-embedding in a frame"). Prints JSON on
+same passes then take longer (performance.md, "A re-embedding in a frame"). `--shuffle`: the
+icosphere's vertices renumbered in a random order (seeded), as a mesh whose vertex order has no
+relation to where its vertices lie. Prints JSON on
 stdout, a table on stderr.
 """
 import argparse
@@ -95,10 +97,15 @@ def bandwidth(threads, mb=256, rounds=5):
     return 24 * n / min(times) / 1e9
 
 
-def run(subdivisions=7, rounds=21, max_threads=None, idle_ms=0.0):
+def run(subdivisions=7, rounds=21, max_threads=None, idle_ms=0.0, shuffle=False):
     if not compiled.load():
         raise SystemExit(f"compiled kernels unavailable: {compiled.why()}")
     v, f = vp.icosphere(subdivisions, 0.45)
+    if shuffle:     # (new vertex k is old vertex perm[k]; the faces renamed to match)
+        perm = np.random.default_rng(0).permutation(len(v))
+        new = np.empty_like(perm)
+        new[perm] = np.arange(len(perm))
+        v, f = v[perm], new[f]
     lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
     topology = vp.Topology(f, len(v))
     positions = v.astype(np.float32)
@@ -157,7 +164,7 @@ def run(subdivisions=7, rounds=21, max_threads=None, idle_ms=0.0):
     finally:
         parallel.set_workers(previous)
     return {"vertices": b.n_verts, "faces": b.n_faces, "slots": int(b.x0.shape[1]), "ring_entries": len(inc[1]),
-            "lattice": list(LATTICE), "cores": cores, "idle_ms": idle_ms, "rows": rows}
+            "lattice": list(LATTICE), "cores": cores, "idle_ms": idle_ms, "shuffled": shuffle, "rows": rows}
 
 
 def markdown(report):
@@ -167,6 +174,7 @@ def markdown(report):
              f"{report['ring_entries']:,} ring entries, {'x'.join(map(str, report['lattice']))} B-spline lattice, "
              "float32; memory: " + ", ".join(f"{r['gb_per_s']} GB/s on {r['threads']}" for r in rows)
              + (f"; {report['idle_ms']:g} ms idle before every re-embedding" if report.get("idle_ms") else "")
+             + ("; the vertices in a random order" if report.get("shuffled") else "")
              + "\n",
              f"| pass | what it does | MB read / written | {head} |", "|---|---|---|" + "---|" * len(rows)]
 
@@ -193,8 +201,9 @@ def main(argv=None):
     ap.add_argument("--max-threads", type=int, default=None)
     ap.add_argument("--idle", type=float, default=0.0, metavar="MS",
                     help="sleep this many ms before every re-embedding, as between a frame's")
+    ap.add_argument("--shuffle", action="store_true", help="the vertices renumbered in a random order")
     args = ap.parse_args(argv)
-    report = run(args.subdivisions, args.rounds, args.max_threads, args.idle)
+    report = run(args.subdivisions, args.rounds, args.max_threads, args.idle, args.shuffle)
     print(markdown(report), file=sys.stderr)
     print(json.dumps(report, indent=1))
     return 0

@@ -13,12 +13,13 @@ import pytest
 pytest.importorskip("numba", reason="numba is not installed in this environment")
 
 import vpffd_addon as vp  # noqa: E402
-from vpffd_addon import backends, compiled, frame, parallel  # noqa: E402
+from vpffd_addon import backends, compiled, frame, parallel, volume  # noqa: E402
 from vpffd_addon import offsets as offsets_  # noqa: E402
 from vpffd_addon.steps import NumpySteps  # noqa: E402
 
 from . import _meshes as M  # noqa: E402
 from ._process import cpu_while_asleep  # noqa: E402
+from .test_core_reembed import _two_spheres  # noqa: E402
 
 pytestmark = pytest.mark.core
 
@@ -229,6 +230,47 @@ def test_a_compiled_re_embedding_is_numpys_bit_for_bit(kernels, dtype):
         moved[7, 1] = np.nan
         with pytest.raises(ValueError, match=r"rest_verts has non-finite coordinates at 1 vertices \(first: index 7\)"):
             vp.bind(lat, moved, tris, dtype=np.float32, topology=topology)
+
+
+@pytest.mark.parametrize("team_parts", [99, 3])
+def test_a_compiled_bind_writes_every_element_of_the_memory_it_takes_unset(kernels, team_parts, monkeypatch):
+    # A compiled bind takes most of its arrays unset (`np.empty`: the slots' values, the counting
+    # sort's counts, with only the padding slots set to zero) and relies on its passes to write
+    # every other element. Here every unset array comes filled with a byte pattern (as memory
+    # freed by an earlier frame would be), and the binding must still be NumPy's bit for bit: one
+    # island, islands (counting sort), many islands (NumPy's sort), a re-embedding, on the Python
+    # threads and on numba's.
+    monkeypatch.setattr(compiled, "TEAM_PARTS", team_parts)
+    previous = parallel.set_workers(3)
+    real_empty, real_empty_like = np.empty, np.empty_like
+
+    def filled(out):
+        out.reshape(-1).view(np.uint8).fill(0xA5)
+        return out
+    v, f = vp.icosphere(6, 0.5)
+    v2, f2 = vp.icosphere(5, 0.2)
+    two = (np.vstack([v * 0.6 - [0.2, 0, 0], v2 + [0.35, 0.1, 0.0]]), np.vstack([f, f2 + len(v)]))
+    small, small_f = vp.icosphere(1, 0.04)
+    many = (np.vstack([small + c for c in np.random.default_rng(1).uniform(-0.4, 0.4, (200, 3))]),
+            np.vstack([small_f + k * len(small) for k in range(200)]))
+    lat = vp.Lattice((6, 5, 4), ("BSPLINE", "CARDINAL", "LINEAR"), bounds=((-0.6,) * 3, (0.6,) * 3))
+    try:
+        for verts, tris, topology in ((v, f, None), (*two, None), (*many, None),
+                                      (v * 1.1, f, vp.Topology(f, len(v)))):
+            compiled.unload()
+            ref = vp.bind(lat, verts, tris, dtype=np.float32)
+            assert compiled.load(teams=True), compiled.why()
+            monkeypatch.setattr(np, "empty", lambda *a, **k: filled(real_empty(*a, **k)))
+            monkeypatch.setattr(np, "empty_like", lambda *a, **k: filled(real_empty_like(*a, **k)))
+            out = vp.bind(lat, verts, tris, dtype=np.float32, topology=topology)
+            monkeypatch.setattr(np, "empty", real_empty)
+            monkeypatch.setattr(np, "empty_like", real_empty_like)
+            assert out.x0.shape[1] > out.n_verts        # (there are padding slots)
+            assert len(out.vertex_parts) == (3 if out.n_verts > 30000 else 1)
+            for name, a in _arrays(ref).items():
+                np.testing.assert_array_equal(_arrays(out)[name], a, err_msg=name)
+    finally:
+        parallel.set_workers(previous)
 
 
 @pytest.mark.parametrize("team_parts", [99, 3])
@@ -852,3 +894,84 @@ def test_the_frame_passes_benchmark_compares_equal_outputs(kernels):
         report = frame_passes.run(subdivisions=3, frames=3, still=still, moving=moving)
         assert report["kernels"] == "compiled" and (report["still"] > 0) == still
         assert set(report["medians_ms"]) == {"evaluate", "solve", "one_pass", "three_passes"}
+
+
+def _turned(angle, scale, shift):
+    """(4, 4) object -> lattice matrix: a turn about z, a scale (the determinant scale**3: below 0
+    it mirrors) and a shift."""
+    c, s = np.cos(angle), np.sin(angle)
+    out = np.eye(4)
+    out[:3, :3] = scale * np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out[:3, 3] = shift
+    return out
+
+
+@pytest.mark.parametrize("backend", ["AUTO", "NUMPY"])
+@pytest.mark.parametrize("islands", [False, True])
+def test_a_closed_meshs_volume_is_measured_as_it_comes_in_and_kept_only_for_the_same_positions(kernels, backend,
+                                                                                               islands):
+    """A closed mesh's rest volume is measured from the positions as they are handed over (the
+    object's space) and scaled by the matrix's determinant into lattice space; the pipeline keeps
+    it from one bind to the next only while the positions are the same (the lattice moving over
+    the mesh, or the mesh object moving). Every frame must be a fresh pipeline's, bit for bit,
+    whatever came before: positions kept, changed, changed back, and the caller's buffer refilled
+    in place; and the volume must be det x the positions' own volume (`signed_volume`, an
+    independent sum, of the float32 positions made float64)."""
+    v, f = _two_spheres()
+    lat = vp.Lattice((4, 4, 4), "BSPLINE", bounds=((-1,) * 3, (1,) * 3))
+    P = lat.rest_points * [1.0, 1.0, 0.75]
+    squashed = (v * (1.0, 1.0, 0.8)).astype(np.float32)
+    frames = [(v, _turned(0.2, 1.3, (0.1, 0.0, 0.0))), (v, _turned(0.25, 1.3, (0.15, 0.05, 0.0))),
+              (squashed, _turned(0.25, 1.3, (0.15, 0.05, 0.0))), (v, _turned(0.3, 0.9, (0.0, 0.1, 0.0))),
+              (squashed, _turned(0.3, 0.9, (0.0, 0.1, 0.0))), (squashed, _turned(0.3, -1.1, (0.0, 0.1, 0.0)))]
+    pipeline, buffer = vp.Pipeline(), np.empty((len(v), 3), np.float32)
+
+    def inputs(positions, matrix):
+        return vp.FrameInputs(positions=positions, tris=f, lattice=lat, points=P, matrix=matrix, axes="XYZ",
+                              islands=islands, dtype=np.float32, backend=backend)
+    for positions, matrix in frames + frames[::-1]:
+        buffer[:] = positions              # (the same array as the frame before, refilled)
+        got = pipeline.evaluate(inputs(buffer, matrix))
+        alone = vp.Pipeline().evaluate(inputs(positions.astype(np.float32), matrix))
+        assert np.array_equal(got.positions, alone.positions) and np.array_equal(got.points, alone.points)
+        assert got.binding.rest_volume == alone.binding.rest_volume
+        det = np.linalg.det(matrix[:3, :3])
+        p64 = positions.astype(np.float32).astype(np.float64)
+        assert got.binding.rest_volume == pytest.approx(det * vp.signed_volume(p64, f), rel=1e-12)
+        topo = got.binding.topology
+        for k in range(topo.n_islands):
+            own = vp.signed_volume(p64, f[topo.face_island == k])
+            assert got.binding.rest_island_volumes[k] == pytest.approx(det * own, rel=1e-12)
+        assert abs(got.volume / got.input_volume - 1) <= 1e-5
+
+
+def test_a_bind_measured_in_another_space_is_numpys_bit_for_bit(kernels):
+    """A bind whose volume is measured from other points (`volume.MeasuredIn`) gives the same
+    binding with the compiled kernels as with NumPy, measuring the sums or given them, for one
+    island and for several; the sums it measures are `volume.measure_about`'s."""
+    for v, f in (vp.icosphere(3, 0.5), _two_spheres()):
+        lat = vp.Lattice((5, 4, 4), "BSPLINE", bounds=((-0.9,) * 3, (0.9,) * 3))
+        topo = vp.Topology(f, len(v))
+        points = v.astype(np.float32)
+        matrix = _turned(0.4, 1.1, (0.05, -0.1, 0.2))
+        moved = points.astype(np.float64) @ matrix[:3, :3].T + matrix[:3, 3]
+        det = np.linalg.det(matrix[:3, :3])
+        origins = volume.origins_about(points, topo)
+        made = {}
+        for compiled in (True, False):
+            fresh = volume.MeasuredIn(points, det, origins)
+            b = vp.bind(lat, moved, f, dtype=np.float32, topology=topo, use_compiled=compiled, measured_in=fresh)
+            total, sums = volume.measure_about(points, origins, topo)
+            assert fresh.sums[0] == total and np.array_equal(fresh.sums[1], sums)
+            given = vp.bind(lat, moved, f, dtype=np.float32, topology=topo, use_compiled=compiled,
+                            measured_in=volume.MeasuredIn(points, det, origins, fresh.sums))
+            made[compiled] = (b, given)
+        for b in (*made[True], made[False][1]):
+            a, want = _arrays(b), _arrays(made[False][0])
+            assert a.keys() == want.keys()
+            for k in want:
+                assert np.array_equal(a[k], want[k]), k
+            assert b.rest_volume == made[False][0].rest_volume
+        with pytest.raises(ValueError, match="closed mesh"):
+            vp.bind(lat, moved, f[1:], topology=vp.Topology(f[1:], len(v)),
+                    measured_in=volume.MeasuredIn(points, det, origins))

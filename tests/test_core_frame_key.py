@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import vpffd_addon as vp
-from vpffd_addon.frame_key import BLOCK, FrameKey, same_array
+from vpffd_addon.arrays import BLOCK, same_array
+from vpffd_addon.frame_key import FrameKey
 
 pytestmark = pytest.mark.core
 

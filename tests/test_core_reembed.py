@@ -187,3 +187,4 @@ def test_a_frame_that_cannot_be_corrected_gives_the_plain_deformation_and_says_w
     res = vp.Pipeline().evaluate(inp)
     assert any("not corrected on this frame" in w for w in res.warnings)
     np.testing.assert_allclose(res.positions, v.astype(np.float32) + 0.1, atol=1e-6)
+

@@ -8,7 +8,7 @@ from .lattice import Lattice
 
 
 def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None, outside="FOLLOW",
-         topology=None, use_compiled=True):
+         topology=None, use_compiled=True, measured_in=None):
     """Bind a triangle mesh to `lattice` (a `Lattice`, or a `Cage` of any topology).
 
     rest_verts: (V, 3) vertex positions in lattice space. tris: (F, 3) vertex indices.
@@ -29,10 +29,16 @@ def bind(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None
 
     use_compiled: lay a lattice binding out with the compiled kernels once `compiled.load()`
     succeeded (the same arrays, bit for bit, in less time); False: NumPy, the reference.
+    measured_in: for a closed mesh bound to a `Lattice` with its `topology`, a
+    `volume.MeasuredIn`: the rest volume is then measured in the space of its points (the
+    object's own, of which `rest_verts` are an affine image) and scaled into lattice space, or
+    taken from its sums where they are known (a mesh that only moved); the bind fills them in.
     """
     if isinstance(lattice, Cage):
+        if measured_in is not None:
+            raise ValueError("measured_in applies to a Lattice only")
         return bind_cage(lattice, rest_verts, tris, influence, dtype, 3 if depth is None else depth,
                          outside, topology=topology)
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
-    return bind_lattice(lattice, rest_verts, tris, influence, dtype, depth, topology, use_compiled)
+    return bind_lattice(lattice, rest_verts, tris, influence, dtype, depth, topology, use_compiled, measured_in)

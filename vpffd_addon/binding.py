@@ -276,8 +276,13 @@ class Binding(BindingBase):
 
 
 def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, depth=None,
-                 topology=None, use_compiled=True):
-    """`bind` for a `Lattice` (see `vpffd_addon.binder.bind`): a `Binding`."""
+                 topology=None, use_compiled=True, measured_in=None):
+    """`bind` for a `Lattice` (see `vpffd_addon.binder.bind`): a `Binding`. measured_in: a
+    `volume.MeasuredIn` for a closed mesh whose rest volume is measured in another space (filled
+    in when its sums are None), or None (measured here about every island's own centre)."""
+    if measured_in is not None and not (topology is not None and topology.is_closed
+                                        and len(measured_in.points) == topology.n_verts):
+        raise ValueError("measured_in needs a closed mesh's Topology and a point for every vertex")
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
     if depth is not None:
@@ -339,11 +344,15 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     n_slots = n_blocks * bs
     b.block_size = bs
     placed = None
+    # The padding slots (each run's last block past its vertices): the compiled layout writes
+    # every vertex's slot and zeros only these, instead of zeroing every slot first (a memset of
+    # every slot array on every frame of a mesh moving through the lattice).
+    pads = _ranges(first_block * bs + run_len, blocks_per_run * bs - run_len) if kernels else None
     if sorting is not None:
         base = np.zeros(n_keys, np.int64)
         base[keyed] = first_block * bs - run_start
         order, *placed = layout.place_slots(kernels, sorting, base, compiled.vertex_rings(b.topology, kernels)[0],
-                                            n_slots)
+                                            n_slots, pads)
     runs = (order, run_start, run_len, first_block)
     local = kernels is not None or all(len(tap) > 2 for tap in taps)
     # For what is made on first use (`_LAZY`): the positions and weights as bound, copied where
@@ -351,7 +360,8 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     b.source = tuple(a.copy() if given is not None and np.may_share_memory(a, given) else a
                       for a, given in ((verts, rest_verts), (s, influence)))
     if kernels:
-        faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, placed)
+        faces = _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, pads, placed,
+                                 measured_in)
     else:
         _numpy_blocks(b, taps, s, runs, n_blocks)
         if local:
@@ -383,7 +393,7 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
         # The unclamped cell of every block (`solve_kernels` gathers its taps from it).
         b.block_cell = run_cells[b.block_run]
 
-    finish(b, rel, tris, labels, n_slots, faces)
+    finish(b, rel, tris, labels, n_slots, faces, measured_in)
     b.block_parts = parallel.split(n_blocks, V)
     if not kernels:                 # (the compiled layout counted them on its way)
         b.n_outside = lattice.outside_count(verts)
@@ -453,13 +463,24 @@ def _numpy_weights(b, taps, s, n_blocks):
     b.ww = per_block(taps[2][1] * s[:, None])
 
 
-def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, placed=None):
+def _ranges(starts, lengths):
+    """The integers of the ranges [starts[i], starts[i] + lengths[i]) one after the other (int64
+    arrays of one length, lengths >= 0)."""
+    ends = np.cumsum(lengths)
+    if not len(ends) or not ends[-1]:
+        return np.zeros(0, np.int64)
+    return np.arange(ends[-1], dtype=np.int64) + np.repeat(starts - (ends - lengths), lengths)
+
+
+def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, pads, placed=None,
+                     measured_in=None):
     """The slots, what every slot holds (the compiled solve's `params`, the influence and x0) and
-    the faces' volumes (`face_volume_sums`), by the compiled kernels on the worker threads;
-    NumPy's stored weights are left to be made if something asks for them
+    the faces' volumes (`face_volume_sums`; with `measured_in`, `volume.MeasuredIn`, measured from
+    its points where its sums are not known yet, else not at all), by the compiled kernels on the
+    worker threads; NumPy's stored weights are left to be made if something asks for them
     (`Binding._materialise`). The faces around every slot are made too (b.incidence, as
     `compiled.incidence`). `placed`: (slot, sorted_slot, where every slot's entries begin) where
-    the counting sort made them (`layout.place_slots`). Returns (face_vol, sums) as `slot_faces`."""
+    the counting sort made them (`layout.place_slots`). Returns what `slot_faces` returns."""
     bs, dt, n_slots = b.block_size, b.dtype, n_blocks * b.block_size
     around = compiled.vertex_rings(b.topology, kernels)
     if placed is None:
@@ -469,18 +490,35 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, p
         kernels["slot_incidence_start"](b.slot, around[0], start)
     else:
         b.slot, sorted_slot, start = placed
-    b.slot_influence, b.params, b.x0 = np.zeros(n_slots, dt), np.zeros((4, n_slots), dt), np.zeros((3, n_slots), dt)
+    # (every vertex's slot is written by `sorted_values`; the padding slots are zero)
+    b.slot_influence, b.params, b.x0 = np.empty(n_slots, dt), np.empty((4, n_slots), dt), np.empty((3, n_slots), dt)
+    b.slot_influence[pads] = 0
+    b.params[:, pads] = 0
+    b.x0[:, pads] = 0
     # (one island: only the terms' sums, in the chunks of `volume.chunked_sums`)
     face_vol = None if b.n_islands == 1 else np.empty(b.topology.tris_t.shape[1])
+    known = measured_in is not None and measured_in.sums is not None
+    if known:
+        task, chunks = None, None
+    elif measured_in is not None:
+        task, chunks = layout.faces_task_about(b, measured_in.points, measured_in.origins, face_vol)
+    else:
+        task, chunks = layout.faces_task(b, rel, face_vol)
     # The faces around every slot too (`compiled.incidence`, which the compiled solve reads), in
     # the same hand-over: a mesh moving through the lattice needs them anew on every frame.
     incidence = (start, np.empty(len(around[1]), np.uint32), np.zeros(n_slots, np.int8))
-    b.n_outside, chunks = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot, rows,
-                                                       rel, face_vol, (around,) + incidence)
+    b.n_outside = layout.slot_values_and_faces(kernels, b, lattice, verts, s, runs[0], sorted_slot, rows, task,
+                                               (around,) + incidence)
     b.incidence = incidence
-    if face_vol is None:
-        return None, np.cumsum(chunks, axis=0)[-1][:, None]
-    return face_vol, _volume_sums(b, face_vol)
+    if not known:
+        measured = ((None, np.cumsum(chunks, axis=0)[-1][:, None]) if face_vol is None
+                    else (face_vol, _volume_sums(b, face_vol)))
+        if measured_in is None:
+            return measured
+        face, sums = measured       # (the total as `volume.measure_about` makes it)
+        measured_in.sums = (float(sums[0, 0]) if face is None else float(face.sum()), sums)
+    total, sums = measured_in.scaled()
+    return None, sums, total
 
 
 def stable_order(keys):
@@ -568,15 +606,24 @@ def _measured_positions(rest_verts, topology, kernels):
     return out, lo, hi, labels
 
 
-def slot_faces(b, rel, n_slots):
+def _measured(b, measured_in):
+    """What `slot_faces` returns, from `measured_in` (`volume.MeasuredIn`), measuring its sums in
+    NumPy where they are not known yet: (None, the binding's (2, k) sums, its total volume)."""
+    if measured_in.sums is None:
+        measured_in.sums = volume.measure_about(measured_in.points, measured_in.origins, b.topology)
+    total, sums = measured_in.scaled()
+    return None, sums, total
+
+
+def slot_faces(b, rel, n_slots, measured_in=None):
     """The rest coordinates in slot order and the faces' volumes (from the coordinates relative to
     the volume origins `rel` (V, 3)), once `b.slot` (V,) is known, in NumPy: sets b.x0 (in the
     binding's precision: the same rounding as storing the float64 ones straight into it) and
-    returns `face_volume_sums`."""
+    returns `face_volume_sums` (with `measured_in`: `_measured`)."""
     coords = np.zeros((3, n_slots))
     coords[:, b.slot] = rel.T
     b.x0 = coords.astype(b.dtype)
-    return face_volume_sums(b, rel)
+    return face_volume_sums(b, rel) if measured_in is None else _measured(b, measured_in)
 
 
 def face_volume_sums(b, rel):
@@ -617,15 +664,17 @@ def corner_parts(b):
     return [np.ascontiguousarray(corners[:, fs]) for fs in parallel.split(corners.shape[1], b.n_verts)]
 
 
-def finish(b, rel, tris, labels, n_slots, faces=None):
+def finish(b, rel, tris, labels, n_slots, faces=None, measured_in=None):
     """Store rest coordinates, faces and volumes once `b.slot` (V,) is known; `faces`: what
-    `slot_faces` returned when it already ran."""
-    face_vol, sums = faces if faces is not None else slot_faces(b, rel, n_slots)
+    `slot_faces` returned when it already ran ((face_vol, sums), or (None, sums, the total) for a
+    volume measured elsewhere, `measured_in`)."""
+    face_vol, sums, *total = faces if faces is not None else slot_faces(b, rel, n_slots, measured_in)
     b.vertex_parts = parallel.split(b.n_verts, b.n_verts)
     b.rest_island_volumes = sums[0]
     # (one island: its sum is this one, made the same way; a mesh moving through the lattice pays
     # for every pass over its faces on every frame)
-    b.rest_volume = float(sums[0][0]) if len(sums[0]) == 1 else float(face_vol.sum())
+    b.rest_volume = (float(total[0]) if total else float(sums[0][0]) if len(sums[0]) == 1
+                     else float(face_vol.sum()))
     # The volume's rounding in the binding's precision: a few ulps of every face's term. An open
     # mesh far from the lattice centre, or a very small one, can enclose less than that.
     b.rest_volume_noise = 4 * float(np.finfo(b.dtype).eps) * sums[1]

@@ -266,6 +266,19 @@ def _smoke(kernels):
             and np.array_equal(sums[:, 1], [abs(terms[0]) + abs(terms[1]), abs(terms[2]) + abs(terms[3]),
                                             abs(terms[4])])):
         raise RuntimeError("the faces' volume sums differ from NumPy's")
+    # The same about other origins, from points of either precision (`volume.MeasuredIn`): the
+    # sums of one island about one origin, the terms of two islands each about its own.
+    origins, face_island = np.array([[0.1, -0.2, 0.05], [0.3, 0.2, -0.1]]), np.array([0, 1, 0, 1, 1], np.int64)
+    for points in (np.ascontiguousarray(coords.T), coords.T.astype(np.float32)):
+        about = [face_volumes((points.astype(np.float64) - o).T, turned) for o in origins]
+        kernels["face_volume_sums_about"](points, origins[0], turned, 2, sums, 0, 3)
+        _team_agrees(kernels, "face_volume_sums_about", (points, origins[0], turned, 2, sums), 3, (4,))
+        vol = np.empty(5)
+        kernels["face_volumes_about"](points, origins, face_island, turned, vol, 0, 5)
+        _team_agrees(kernels, "face_volumes_about", (points, origins, face_island, turned, vol), 5, (4,))
+        if not (np.array_equal(sums[:, 0], [about[0][0] + about[0][1], about[0][2] + about[0][3], about[0][4]])
+                and np.array_equal(vol, np.where(face_island == 0, about[0], about[1]))):
+            raise RuntimeError("the faces' volume terms about other origins differ from NumPy's")
     n_slots = 8 * len(runs)
     # Closedness and islands: a tetrahedron, a second one beside it and a vertex no face uses;
     # then with a face turned, a face missing, a face doubled and a degenerate face added.

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import backends, compiled, lattice_eval, parallel
+from .arrays import same_array
 from .binder import bind
 from .cage import Cage
 from .outside import mode as outside_mode, outside_factor
@@ -22,6 +23,7 @@ from .lattice import Lattice
 from .linalg3 import affine, affine_inverse, det3
 from .mesh import Topology
 from .offsets import float32_offsets
+from .volume import MeasuredIn, origins_about
 
 
 @dataclass(eq=False)
@@ -194,10 +196,11 @@ class Pipeline:
         self._binding_key = None
         self._last_space = None
         self._last_weights = None
+        self._volume = None
 
     def clear(self):
         self.topology = self.binding = self._binding_key = self._faces = None
-        self._last_space = self._last_weights = None
+        self._last_space = self._last_weights = self._volume = None
 
     def _lattice_space(self, positions, M):
         """`positions` (V, 3) in lattice space, float64; the last frame's when its positions and
@@ -265,9 +268,13 @@ class Pipeline:
         compiled_layout = backends.compiled_layout(inp.backend)
         topology = self._topology(inp.tris, len(verts), compiled_layout)
         extra = dict(depth=inp.cage_depth, outside=inp.cage_outside) if cage else {}
+        if not cage and topology.is_closed:
+            extra["measured_in"] = self._measured_in(inp, topology)
         self.binding = None   # never keep a binding whose inputs are not all in its key
         self.binding = bind(lat, verts, topology.tris, influence=influence, dtype=inp.dtype,
                             topology=topology, use_compiled=compiled_layout, **extra)
+        if "measured_in" in extra:
+            self._keep_volume(extra["measured_in"], topology)
         # `verts` is this pipeline's own array (`_lattice_space`, which never changes one it
         # returned, and returns it again while the positions and the matrix are unchanged): kept
         # as it is, the next frame's unchanged positions are known by identity. New positions
@@ -278,6 +285,36 @@ class Pipeline:
         # or an array made from them in `evaluate` that no one else holds)
         self._binding_key = (key, verts, influence, _still(influence))
         return self.binding, True, self._binding_key[3]
+
+    def _measured_in(self, inp, topology):
+        """A closed mesh's rest volume, measured in the object's space (the positions as handed
+        over) and scaled into the lattice's: a `volume.MeasuredIn` with the sums kept from the
+        last bind where the positions are the same (a mesh that only moves, or a lattice that
+        moves over it, measures its faces once). Measured again or kept, the sums are the same
+        bits: they depend on the positions alone (docs/performance.md, "The volume of a mesh that
+        only moves")."""
+        X = np.ascontiguousarray(inp.positions)
+        if X.dtype not in (np.float32, np.float64):
+            X = X.astype(np.float64)
+        det = det3(np.asarray(inp.matrix, dtype=np.float64)[:3, :3])
+        kept = self._volume
+        # (some hundred of the positions first: a mesh that deforms differs in most of them)
+        step = max(1, len(X) // 512)
+        if (kept is not None and kept[0] is topology and kept[1].shape == X.shape
+                and np.array_equal(kept[1][::step], X[::step]) and same_array(kept[1], X)):
+            return MeasuredIn(X, det, kept[2], kept[3])
+        return MeasuredIn(X, det, origins_about(X, topology))
+
+    def _keep_volume(self, measured, topology):
+        """Keep what `_measured_in` compares the next positions with: a copy of this frame's
+        positions (the caller's next ones may come in the same buffer), the one `_lattice_space`
+        made of them in this `evaluate` where it is of the same type."""
+        kept = self._volume
+        if kept is None or kept[3] is not measured.sums:
+            own = self._last_space[1]
+            if own.dtype != measured.points.dtype or own.shape != measured.points.shape:
+                own = measured.points.copy()
+            self._volume = (topology, own, measured.origins, measured.sums)
 
     def evaluate(self, inp):
         """The `FrameResult` of `inp`. Raises ValueError for inputs that give no defined result."""

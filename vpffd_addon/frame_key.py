@@ -15,26 +15,9 @@ import dataclasses
 
 import numpy as np
 
+from .arrays import same_array
 from .frame import FrameInputs
 from .lattice import Lattice
-
-#: Elements compared at a time: a change is usually found in the first block, and a block's
-#: comparison allocates no more than this many booleans.
-BLOCK = 1 << 16
-
-
-def same_array(a, b):
-    """Whether arrays `a` and `b` hold the same values (same shape and dtype; NaN never equals):
-    identity first, then shapes, then the content block by block, stopping at a difference."""
-    if a is b:
-        return True
-    if a.shape != b.shape or a.dtype != b.dtype:
-        return False
-    fa, fb = a.reshape(-1), b.reshape(-1)
-    for start in range(0, fa.size, BLOCK):
-        if not np.array_equal(fa[start:start + BLOCK], fb[start:start + BLOCK]):
-            return False
-    return True
 
 
 class _Same:

@@ -82,17 +82,20 @@ def cell_keys(kernels, verts, lattice, labels, dims, n_keys, origin, rows):
     return start, rel, (key, place, parts)
 
 
-def place_slots(kernels, sorting, base, entry_start, n_slots):
+def place_slots(kernels, sorting, base, entry_start, n_slots, pads):
     """The second half of `cell_keys`' sort, with the slots (`layout_kernels.place_slots`): every
     vertex at its key's place in the order and in its slot, base (n_keys,) int64 every key's first
     slot less where its vertices begin (keys of no vertex: any); and where the entries of the
     faces around every slot begin, from where every vertex's begin (entry_start (V + 1,)). Returns
     (order (V,), slot (V,), sorted_slot (V,), the entries' starts (n_slots + 1,)), as the `slots`
-    pass and `solve_kernels.slot_incidence_start` make them."""
+    pass and `solve_kernels.slot_incidence_start` make them. pads (int64): the slots that no
+    vertex takes (`binding.bind_lattice`), where no entries begin."""
     key, place, parts = sorting
     V = len(key)
     order, slot, sorted_slot = np.empty(V, np.int64), np.empty(V, np.int64), np.empty(V, np.int64)
-    count = np.zeros(n_slots + 1, np.int64)
+    count = np.empty(n_slots + 1, np.int64)     # (the pass writes every vertex's slot + 1)
+    count[0] = 0
+    count[pads + 1] = 0
     compiled.over("place_slots", parts, key, place, base, entry_start, order, slot, sorted_slot, count,
                   per_part=(1,), kernels=kernels)
     kernels["running_sum"](count)
@@ -140,31 +143,50 @@ def mixed_parts(tasks, n_parts):
     return out
 
 
-def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rows, rel, face_vol, around=None):
-    """What every slot holds (b.params, b.slot_influence, b.x0: `layout_kernels.sorted_values`)
-    (x0 from verts (V, 3) less the origin of its row `rows` (V,) of b.island_origin, or empty
-    for its only row) and the faces' float64 volume terms from rel (V, 3) (the same differences,
-    made by `cell_keys`): into face_vol (F,) where it is given,
-    else only their sums in chunks (`layout_kernels.face_volume_sums`, for one island: the terms
-    themselves are read by nothing else); with `around` = (the topology's faces around every
-    vertex, `compiled.vertex_rings`; start (n_slots + 1,) made from them; entries, ring to fill)
-    also the faces around every slot (`solve_kernels.slot_incidence_fill`, what
-    `compiled.incidence` makes). On the Python threads all of it is one hand-over, the three laid
-    end to end and cut into parts of about equal cost (`mixed_parts`): the renumbering writes
-    every slot's entries where its vertex takes them, so split by vertices its parts write into
-    the same cache lines (two threads took as long as one); cut this way it stays whole in one
-    part on up to about five threads.
-    Returns (how many vertices lie outside the lattice, the chunks' sums (n_chunks, 2) or None)."""
-    V, tris_t = b.n_verts, b.topology.tris_t
+def faces_task(b, rel, face_vol):
+    """The faces' float64 volume terms of binding `b` from rel (V, 3) (the coordinates relative to
+    the volume origins, made by `cell_keys`) as a task of `slot_values_and_faces`: into face_vol
+    (F,) where it is given, else only their sums in chunks (`layout_kernels.face_volume_sums`,
+    for one island: the terms themselves are read by nothing else). Returns (the task, the chunks'
+    sums (n_chunks, 2) or None)."""
+    return _faces(b, face_vol, ("face_volume_sums", (rel,)), ("face_volumes", (rel,)))
+
+
+def faces_task_about(b, points, origins, face_vol):
+    """As `faces_task`, the terms of points (V, 3) (float32 or float64) about every island's row
+    of origins (k, 3) (`volume.MeasuredIn`; `layout_kernels.face_volume_sums_about`,
+    `face_volumes_about`)."""
+    return _faces(b, face_vol, ("face_volume_sums_about", (points, origins[0])),
+                  ("face_volumes_about", (points, origins, b.topology.face_island)))
+
+
+def _faces(b, face_vol, sums_kernel, terms_kernel):
+    tris_t = b.topology.tris_t
     F = tris_t.shape[1]
-    vparts = parallel.split(V, V)
     if face_vol is None:
         chunk = volume.FACE_CHUNK
         sums = np.empty((max(1, -(-F // chunk)), 2))
-        faces = ("face_volume_sums", (rel, tris_t, chunk, sums), len(sums), _NS_PER["faces"] * chunk)
-    else:
-        sums = None
-        faces = ("face_volumes", (rel, tris_t, face_vol), F, _NS_PER["faces"])
+        name, head = sums_kernel
+        return (name, head + (tris_t, chunk, sums), len(sums), _NS_PER["faces"] * chunk), sums
+    name, head = terms_kernel
+    return (name, head + (tris_t, face_vol), F, _NS_PER["faces"]), None
+
+
+def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, rows, faces, around=None):
+    """What every slot holds (b.params, b.slot_influence, b.x0: `layout_kernels.sorted_values`)
+    (x0 from verts (V, 3) less the origin of its row `rows` (V,) of b.island_origin, or empty
+    for its only row) and the faces' volume terms or their sums (`faces`: a task of `faces_task`
+    or `faces_task_about`, or None where the volume is known); with `around` = (the topology's
+    faces around every vertex, `compiled.vertex_rings`; start (n_slots + 1,) made from them;
+    entries, ring to fill) also the faces around every slot (`solve_kernels.slot_incidence_fill`,
+    what `compiled.incidence` makes). On the Python threads all of it is one hand-over, the three
+    laid end to end and cut into parts of about equal cost (`mixed_parts`): the renumbering writes
+    every slot's entries where its vertex takes them, so split by vertices its parts write into
+    the same cache lines (two threads took as long as one); cut this way it stays whole in one
+    part on up to about five threads.
+    Returns how many vertices lie outside the lattice."""
+    V = b.n_verts
+    vparts = parallel.split(V, V)
     shape = np.array(lattice.shape, np.int64)
     eps = 1e-6 * lattice.size
 
@@ -173,15 +195,18 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, row
     fill = None if around is None else (b.slot, *around[0], *around[1:])
     if compiled.teams("sorted_values", vparts, kernels):
         got = compiled.over("sorted_values", vparts, *values, returns=1, kernels=kernels)
-        compiled.over(faces[0], parallel.split(faces[2], V), *faces[1], kernels=kernels)
+        if faces is not None:
+            compiled.over(faces[0], parallel.split(faces[2], V), *faces[1], kernels=kernels)
         if fill is not None:
             compiled.over("slot_incidence_fill", vparts, *fill, kernels=kernels)
-        return int(sum(part[0] for part in got)), sums
-    tasks = [("values", V, _NS_PER["values"]), (faces[0], faces[2], faces[3])]
+        return int(sum(part[0] for part in got))
+    tasks = [("values", V, _NS_PER["values"])]
+    calls = {"values": (kernels["sorted_values"], values), "fill": (kernels["slot_incidence_fill"], fill)}
+    if faces is not None:
+        tasks.append((faces[0], faces[2], faces[3]))
+        calls[faces[0]] = (kernels[faces[0]], faces[1])
     if fill is not None:
         tasks.insert(0, ("fill", V, _NS_PER["fill"] * len(around[0][1]) / max(V, 1)))
-    calls = {"values": (kernels["sorted_values"], values), faces[0]: (kernels[faces[0]], faces[1]),
-             "fill": (kernels["slot_incidence_fill"], fill)}
 
     def part(pieces):   # (every pass of the part in one hand-over)
         outside = 0
@@ -192,4 +217,4 @@ def slot_values_and_faces(kernels, b, lattice, verts, s, order, sorted_slot, row
                 outside += got
         return outside
     pieces = [p for p in mixed_parts(tasks, len(vparts)) if p]
-    return sum(parallel.run(part, pieces)), sums
+    return sum(parallel.run(part, pieces))

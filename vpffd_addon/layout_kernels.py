@@ -133,6 +133,54 @@ def define(njit):
             sums[c, 1] = size
 
     @njit
+    def face_volume_sums_about(points, origin, tris_t, chunk, sums, c0, c1):
+        # `face_volume_sums` of the faces of points (V, 3) (float32 or float64) about origin
+        # (3,) float64: each coordinate made float64 and the origin's taken from it as the
+        # term is made, as `volume.measure_about` does in NumPy (the same values as
+        # `face_volume_sums` of points - origin).
+        F = tris_t.shape[1]
+        ox, oy, oz = origin[0], origin[1], origin[2]
+        for c in range(c0, c1):
+            f0 = c * chunk
+            f1 = min(f0 + chunk, F)
+            ta, tb, tc = tris_t[0, f0:f1], tris_t[1, f0:f1], tris_t[2, f0:f1]
+            total = 0.0
+            size = 0.0
+            for f in range(ta.shape[0]):
+                a = ta[f]
+                b = tb[f]
+                d = tc[f]
+                x0, y0, z0 = points[a, 0] - ox, points[a, 1] - oy, points[a, 2] - oz
+                x1, y1, z1 = points[b, 0] - ox, points[b, 1] - oy, points[b, 2] - oz
+                x2, y2, z2 = points[d, 0] - ox, points[d, 1] - oy, points[d, 2] - oz
+                term = (x0 * (y1 * z2 - z1 * y2)
+                        + y0 * (z1 * x2 - x1 * z2)
+                        + z0 * (x1 * y2 - y1 * x2)) / 6.0
+                total += term
+                size += abs(term)
+            sums[c, 0] = total
+            sums[c, 1] = size
+
+    @njit
+    def face_volumes_about(points, origins, face_island, tris_t, face_vol, f0, f1):
+        # `face_volumes` of the faces f0..f1-1 of points (V, 3) (float32 or float64), each about
+        # the origin of its island (origins (k, 3) float64, face_island (F,) int64).
+        ta, tb, tc, out = tris_t[0, f0:f1], tris_t[1, f0:f1], tris_t[2, f0:f1], face_vol[f0:f1]
+        isl = face_island[f0:f1]
+        for f in range(out.shape[0]):
+            a = ta[f]
+            b = tb[f]
+            c = tc[f]
+            o = isl[f]
+            ox, oy, oz = origins[o, 0], origins[o, 1], origins[o, 2]
+            x0, y0, z0 = points[a, 0] - ox, points[a, 1] - oy, points[a, 2] - oz
+            x1, y1, z1 = points[b, 0] - ox, points[b, 1] - oy, points[b, 2] - oz
+            x2, y2, z2 = points[c, 0] - ox, points[c, 1] - oy, points[c, 2] - oz
+            out[f] = (x0 * (y1 * z2 - z1 * y2)
+                      + y0 * (z1 * x2 - x1 * z2)
+                      + z0 * (x1 * y2 - y1 * x2)) / 6.0
+
+    @njit
     def axis_cells(xyz, a, n, lo, hi, cell, tt, v0, v1):
         # `bases.axis_cells` for local axis a (n >= 2) of the coordinates xyz (V, 3): the
         # unclamped cell (V,) int64 and t (V,), of vertices v0..v1-1.
@@ -373,7 +421,8 @@ def define(njit):
                 rel[v, a] = verts[v, a] - origin[r, a]
 
     return {"slots": slots, "sorted_values": sorted_values, "face_volumes": face_volumes,
-            "face_volume_sums": face_volume_sums,
+            "face_volume_sums": face_volume_sums, "face_volumes_about": face_volumes_about,
+            "face_volume_sums_about": face_volume_sums_about,
             "axis_cells": axis_cells, "positions": positions, "relative": relative,
             "cell_keys": cell_keys, "key_starts": key_starts, "place_slots": place_slots, "running_sum": running_sum,
             "components": components, "closed": closed}
@@ -441,5 +490,15 @@ def face_volume_sums_team(edges, rel, tris_t, chunk, sums):
         _k_face_volume_sums(rel, tris_t, chunk, sums, edges[j], edges[j + 1])  # noqa: F821
 
 
+def face_volumes_about_team(edges, points, origins, face_island, tris_t, face_vol):
+    for j in prange(edges.shape[0] - 1):
+        _k_face_volumes_about(points, origins, face_island, tris_t, face_vol, edges[j], edges[j + 1])  # noqa: F821
+
+
+def face_volume_sums_about_team(edges, points, origin, tris_t, chunk, sums):
+    for j in prange(edges.shape[0] - 1):
+        _k_face_volume_sums_about(points, origin, tris_t, chunk, sums, edges[j], edges[j + 1])  # noqa: F821
+
+
 _TEAMS = ("positions", "relative", "axis_cells", "cell_keys", "place_slots", "slots", "sorted_values",
-          "face_volumes", "face_volume_sums")
+          "face_volumes", "face_volume_sums", "face_volumes_about", "face_volume_sums_about")

@@ -385,27 +385,75 @@ def reduce_blocks(M, block_cell, block_row, shape, c, alpha):
     # the entries of the cell's control points, T[k, j, i] = sum_pqr c[0, i, p] c[1, j, q]
     # c[2, k, r] M[r, q, p] (c: `constants`), one axis at a time: the transpose of
     # `cell_polynomial` and the forward's evaluation. One thread, in block order: the same
-    # result on any number of threads.
-    idx = np.empty(64, np.int64)
-    acc = np.zeros(64)
-    A = np.empty(64)
-    B = np.empty(64)
-    T = np.empty(64)
+    # result on any number of threads. Every run's sums go to a column of one (64, runs) array,
+    # whose changes of basis are made for all runs at once, a run in every vector lane
+    # (`change_basis_runs`): a run at a time, the 768 products and sums of its three changes of
+    # basis, which may not be fused or reordered, took twice as long (docs/performance.md, "Pass
+    # by pass, against this machine").
     n_blocks = M.shape[0]
+    last = np.empty(n_blocks, np.int64)         # (the last block of every run)
+    n_runs = 0
     for bl in range(n_blocks):
-        for q in range(64):
-            acc[q] += M[bl, q]
-        if (bl + 1 < n_blocks and block_row[bl + 1] == block_row[bl]
+        if not (bl + 1 < n_blocks and block_row[bl + 1] == block_row[bl]
                 and same_cell(block_cell, bl, bl + 1)):
-            continue
-        taps(block_cell[bl], shape, idx)
-        change_basis(acc, c, 0, True, A)
-        change_basis(A, c, 1, True, B)
-        change_basis(B, c, 2, True, T)
-        row = block_row[bl]
+            last[n_runs] = bl
+            n_runs += 1
+    A = np.empty((64, n_runs))
+    acc = np.zeros(64)
+    bl = 0
+    for r in range(n_runs):
+        while bl <= last[r]:
+            moments = M[bl]
+            for q in range(64):
+                acc[q] += moments[q]
+            bl += 1
         for q in range(64):
-            alpha[row, idx[q]] += T[q]
+            A[q, r] = acc[q]
             acc[q] = 0.0
+    B = np.empty((64, n_runs))
+    change_basis_runs(A, c, 0, B)
+    change_basis_runs(B, c, 1, A)
+    change_basis_runs(A, c, 2, B)
+    # (a cell whose 64 control points are all inside the lattice: at fixed offsets from its first)
+    nu, nv, nw = shape[0], shape[1], shape[2]
+    offset = np.empty(64, np.int64)
+    for q in range(64):
+        offset[q] = ((q >> 4) * nv + ((q >> 2) & 3)) * nu + (q & 3)
+    idx = np.empty(64, np.int64)
+    for k in range(n_runs):
+        bl = last[k]
+        cx, cy, cz = block_cell[bl, 0], block_cell[bl, 1], block_cell[bl, 2]
+        out = alpha[block_row[bl]]
+        if cx >= 1 and cy >= 1 and cz >= 1 and cx + 2 < nu and cy + 2 < nv and cz + 2 < nw:
+            first = ((cz - 1) * nv + (cy - 1)) * nu + (cx - 1)
+            for q in range(64):
+                out[first + offset[q]] += B[q, k]
+        else:
+            taps(block_cell[bl], shape, idx)
+            for q in range(64):
+                out[idx[q]] += B[q, k]
+
+
+def change_basis_runs(src, c, a, dst):
+    # `change_basis` (transposed) of many runs' tensors at once: src, dst (64, n_runs), a run in
+    # each column; the same products and sums in the same order for every run.
+    stride = 1 if a == 0 else (4 if a == 1 else 16)
+    n = src.shape[1]
+    for hi in range(0, 64, 4 * stride):
+        for x in range(4):
+            w0 = np.float64(c[a, x, 0])
+            w1 = np.float64(c[a, x, 1])
+            w2 = np.float64(c[a, x, 2])
+            w3 = np.float64(c[a, x, 3])
+            for lo in range(stride):
+                i = hi + lo
+                s0 = src[i]
+                s1 = src[i + stride]
+                s2 = src[i + 2 * stride]
+                s3 = src[i + 3 * stride]
+                d = dst[hi + x * stride + lo]
+                for k in range(n):
+                    d[k] = (((0.0 + s0[k] * w0) + s1[k] * w1) + s2[k] * w2) + s3[k] * w3
 
 
 def householder(M, tau):
@@ -751,7 +799,7 @@ def forward_then_to_verts(params, c, block_cell, shape, D, x0, comps, X,
 
 _FUSED = ("forward_then_gradient_transpose", "forward_then_gradient_transpose3", "forward_then_to_verts")
 _TEAMS = ("forward", "gradient_transpose", "gradient_transpose3", "slot_incidence_fill", "to_verts")
-_HELPERS = ("same_cell", "taps", "change_basis", "block_powers", "block_moments", "triangular_solve",
+_HELPERS = ("same_cell", "taps", "change_basis", "change_basis_runs", "block_powers", "block_moments", "triangular_solve",
             "fan_gradient", "cell_polynomial")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
             "reduce_blocks": "njit", "householder": "njit_sums", "apply_q": "njit_sums",

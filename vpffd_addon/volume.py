@@ -70,3 +70,59 @@ def gradient_component(P, Q, corners, n_slots):
     g = np.bincount(corners.ravel(), c.ravel(), n_slots)
     g *= 1.0 / 6.0
     return g
+
+
+#: About how many of one island's vertices its origin is taken from (`origins_about`): the
+#: origin only keeps the terms' rounding small, and any point near the mesh serves.
+ORIGIN_SAMPLES = 512
+
+
+class MeasuredIn:
+    """A closed mesh's rest volume measured from `points` (V, 3) float32 or float64 (C order),
+    of which the positions a binding binds are an affine image with determinant `det`: the
+    object's own space, for a mesh bound in the lattice's (docs/performance.md, "The volume of a
+    mesh that only moves"). Every island's volume there is det times its volume here, so a mesh
+    that only moves keeps the sums measured once, and a frame's result is the same whether they
+    were kept or measured again: they depend on `points` alone.
+
+    origins (k, 3) float64: per island, the point its terms are taken about (`origins_about`).
+    sums: None until a bind measures them (it fills them in, `measure_about`'s result); a caller
+    binding the same points again hands the same back and the bind skips the faces."""
+
+    def __init__(self, points, det, origins, sums=None):
+        self.points, self.det, self.origins, self.sums = points, float(det), origins, sums
+
+    def scaled(self):
+        """(the total volume, (2, k): per island the volume and the sum of the terms' absolute
+        values) in the binding's space: det times those measured here (|det| for the second)."""
+        total, sums = self.sums
+        return self.det * total, np.stack([self.det * sums[0], abs(self.det) * sums[1]])
+
+
+def origins_about(points, topology):
+    """(k, 3) float64: per island of `topology`, the point about which `measure_about` takes its
+    terms: the centre of its bounding box; for one island, the box of about `ORIGIN_SAMPLES` of
+    its vertices, evenly spaced in their order (a mesh that deforms on every frame measures its
+    volume on every frame, and any point near the mesh keeps the terms small)."""
+    if topology.n_islands == 1:
+        step = max(1, len(points) // ORIGIN_SAMPLES)
+        cols = np.ascontiguousarray(np.asarray(points[::step]).T, dtype=np.float64)
+        return (0.5 * (cols.min(axis=1) + cols.max(axis=1)))[None]
+    lo, hi = topology.island_bounds(np.asarray(points, np.float64))
+    return 0.5 * (lo + hi)
+
+
+def measure_about(points, origins, topology):
+    """(total, (2, k)) of the faces of `topology` over points (V, 3), each island's terms about
+    its row of origins (k, 3): the volume, and per island the volume and the sum of the terms'
+    absolute values, in the order a bind adds them up (one island: `chunked_sums`; islands: per
+    face, then per island, the total in the faces' order). NumPy; the compiled bind makes the
+    same bits (`layout_kernels.face_volume_sums_about`, `face_volumes_about`)."""
+    p = np.asarray(points, np.float64)
+    rel = p - (origins[0] if topology.n_islands == 1 else origins[topology.labels])
+    face = face_volumes(np.ascontiguousarray(rel.T), topology.tris_t)
+    if topology.n_islands == 1:
+        sums = chunked_sums(face)[:, None]
+        return float(sums[0, 0]), sums
+    k, island = topology.n_islands, topology.face_island
+    return float(face.sum()), np.stack([np.bincount(island, face, k), np.bincount(island, np.abs(face), k)])

@@ -150,6 +150,11 @@ MUTATIONS = {
         "    b.x0[:, pads] = 0\n",
         "",
         ["tests/test_core_compiled.py", "-k", "memory_it_takes"], {}),
+    "smoke-points-fortran": (
+        "vpffd_addon/compiled.py",
+        "    for points in (np.ascontiguousarray(coords.T), np.ascontiguousarray(coords.T, dtype=np.float32)):",
+        "    for points in (np.ascontiguousarray(coords.T), coords.T.astype(np.float32)):",
+        ["tests/test_core_compiled.py", "-k", "compiles_no_kernel"], {}),
     "reembed-fill-short": (
         "vpffd_addon/layout.py",
         '        tasks.insert(0, ("fill", V, _NS_PER["fill"]',

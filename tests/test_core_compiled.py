@@ -975,3 +975,51 @@ def test_a_bind_measured_in_another_space_is_numpys_bit_for_bit(kernels):
         with pytest.raises(ValueError, match="closed mesh"):
             vp.bind(lat, moved, f[1:], topology=vp.Topology(f[1:], len(v)),
                     measured_in=volume.MeasuredIn(points, det, origins))
+        with pytest.raises(ValueError, match="an origin for every island"):
+            vp.bind(lat, moved, f, topology=topo, measured_in=volume.MeasuredIn(points, det, np.zeros((3, 3))))
+        with pytest.raises(ValueError, match=r"shape \(V, 3\)"):
+            volume.MeasuredIn(points[:, :2], det, origins)
+        with pytest.raises(ValueError, match="sums"):
+            volume.MeasuredIn(points, det, origins, (1.0, np.zeros((2, len(origins) + 1))))
+        as_list = volume.MeasuredIn(points.tolist(), det, origins)
+        assert as_list.points.dtype == np.float64 and as_list.points.flags.c_contiguous
+
+
+def _signatures():
+    return {name: set(map(str, k.signatures)) for name, k in compiled._state["kernels"].items()
+            if hasattr(k, "signatures")}
+
+
+@pytest.mark.parametrize("team_parts", [99, 2])
+def test_a_frame_compiles_no_kernel_that_loading_did_not(kernels, team_parts, monkeypatch):
+    # numba compiles a kernel anew for every new combination of its arguments' types, layouts and
+    # writability, and a compile in a frame stalls it by a second or more: the start-up check
+    # (`compiled._smoke`) calls every kernel with what a frame hands it. Here frames as Blender
+    # makes them (float32 positions and weights in C order, the pipeline's read-only weights, a
+    # mesh and a lattice that move, islands, vertices of weight 0, both precisions), on the Python
+    # threads and on numba's, and not one kernel may compile a signature it did not have.
+    monkeypatch.setattr(compiled, "TEAM_PARTS", team_parts)
+    previous = parallel.set_workers(2)
+    v, f = vp.icosphere(6, 0.45)
+    two = _two_spheres()
+    lat = vp.Lattice((6, 6, 6), "BSPLINE", bounds=((-0.6,) * 3, (0.6,) * 3))
+    before = _signatures()
+    try:
+        for verts, tris, islands in ((v, f, False), (two[0] * 1.5, two[1], True)):
+            positions = verts.astype(np.float32)
+            weights = np.ones(len(verts), np.float32)
+            weights[::9] = 0.0
+            for dtype in (np.float32, np.float64):
+                pipeline = vp.Pipeline()
+                for k in range(3):
+                    matrix = _turned(0.1 * k, 1.0, (0.01 * k, 0.0, 0.0))
+                    moved = positions + np.float32(0.002 * k) if k == 2 else positions
+                    P = lat.rest_points * [1.0, 1.0, 0.8 + 0.02 * k]
+                    pipeline.evaluate(vp.FrameInputs(positions=moved, tris=tris, lattice=lat, points=P,
+                                                     matrix=matrix, weights=weights, axes="XYZ",
+                                                     islands=islands, dtype=dtype)).float32_offsets()
+    finally:
+        parallel.set_workers(previous)
+    after = _signatures()
+    assert {name: after[name] - before.get(name, set()) for name in after
+            if after[name] - before.get(name, set())} == {}

@@ -280,9 +280,11 @@ def bind_lattice(lattice, rest_verts, tris, influence=None, dtype=np.float64, de
     """`bind` for a `Lattice` (see `vpffd_addon.binder.bind`): a `Binding`. measured_in: a
     `volume.MeasuredIn` for a closed mesh whose rest volume is measured in another space (filled
     in when its sums are None), or None (measured here about every island's own centre)."""
-    if measured_in is not None and not (topology is not None and topology.is_closed
-                                        and len(measured_in.points) == topology.n_verts):
-        raise ValueError("measured_in needs a closed mesh's Topology and a point for every vertex")
+    if measured_in is not None and not (isinstance(topology, Topology) and topology.is_closed
+                                        and len(measured_in.points) == topology.n_verts
+                                        and len(measured_in.origins) == topology.n_islands):
+        raise ValueError("measured_in needs a closed mesh's Topology, a point for every vertex and an "
+                         "origin for every island")
     if not isinstance(lattice, Lattice):
         raise ValueError(f"bind needs a vpffd_addon.Lattice or Cage, got {type(lattice).__name__}")
     if depth is not None:

@@ -269,7 +269,7 @@ def _smoke(kernels):
     # The same about other origins, from points of either precision (`volume.MeasuredIn`): the
     # sums of one island about one origin, the terms of two islands each about its own.
     origins, face_island = np.array([[0.1, -0.2, 0.05], [0.3, 0.2, -0.1]]), np.array([0, 1, 0, 1, 1], np.int64)
-    for points in (np.ascontiguousarray(coords.T), coords.T.astype(np.float32)):
+    for points in (np.ascontiguousarray(coords.T), np.ascontiguousarray(coords.T, dtype=np.float32)):
         about = [face_volumes((points.astype(np.float64) - o).T, turned) for o in origins]
         kernels["face_volume_sums_about"](points, origins[0], turned, 2, sums, 0, 3)
         _team_agrees(kernels, "face_volume_sums_about", (points, origins[0], turned, 2, sums), 3, (4,))
@@ -362,13 +362,17 @@ def _smoke(kernels):
                     and np.array_equal(rel, want - (0.5 * (lo + hi))[rows])):
                 raise RuntimeError("the checked positions and their bounds differ from NumPy's")
     origin = np.array([[0.1, -0.2, 0.3], [-0.4, 0.5, 0.7]])
+    fixed = np.ones(len(x))
+    fixed.flags.writeable = False       # (a pipeline's weights are read-only: another signature)
     for dtype in (np.float32, np.float64):
-        # (x0 relative to one origin, then to each vertex's island's row of two)
-        for rows in (np.zeros(0, np.int64), (np.arange(len(x)) % 2).astype(np.int64)):
+        # (x0 relative to one origin, then to each vertex's island's row of two; weights one
+        # may write and read-only ones)
+        for rows, weights in zip((np.zeros(0, np.int64), (np.arange(len(x)) % 2).astype(np.int64)) * 2,
+                                 (np.ones(len(x)),) * 2 + (fixed,) * 2):
             params, influence = np.zeros((4, n_slots), dtype), np.zeros(n_slots, dtype)
             x0 = np.zeros((3, n_slots), dtype)
             xyz = np.stack([x, x, x], 1)
-            values = (order, sorted_slot, xyz, origin, rows, np.ones(len(x)), np.array([5, 5, 5], np.int64),
+            values = (order, sorted_slot, xyz, origin, rows, weights, np.array([5, 5, 5], np.int64),
                       np.full(3, -0.5), np.full(3, 0.5), 1e-6, params, influence, x0)
             outside = kernels["sorted_values"](*values, 0, len(x))
             want = x - origin[rows if len(rows) else 0, 2]
@@ -451,7 +455,7 @@ def _smoke_solve(kernels, dtype):
     if not np.allclose(u, np.linalg.lstsq(A, np.ones(3), rcond=None)[0], rtol=0, atol=1e-12):
         raise RuntimeError("the compiled QR's least-norm step differs from LAPACK's")
     mat = np.array([[0.3, -1.2, 0.7, 0.1], [2.0, 0.25, -0.5, -3.0], [0.1, 0.9, 1.7, 0.4], [0, 0, 0, 1.0]])
-    for given in (A.T.copy(), A.T.astype(np.float32)):
+    for given in (A.T.copy(), np.ascontiguousarray(A.T, dtype=np.float32)):
         out = np.empty((len(given), 3))
         kernels["affine"](given, mat, out, 0, len(given))
         _team_agrees(kernels, "affine", (given, mat, out), len(given), (2,))

@@ -90,7 +90,20 @@ class MeasuredIn:
     binding the same points again hands the same back and the bind skips the faces."""
 
     def __init__(self, points, det, origins, sums=None):
-        self.points, self.det, self.origins, self.sums = points, float(det), origins, sums
+        points = np.asarray(points)
+        if points.dtype not in (np.float32, np.float64):
+            points = points.astype(np.float64)
+        self.points = np.ascontiguousarray(points)
+        self.origins = np.ascontiguousarray(origins, dtype=np.float64)
+        self.det, self.sums = float(det), sums
+        if self.points.ndim != 2 or self.points.shape[1:] != (3,):
+            raise ValueError(f"MeasuredIn's points must have shape (V, 3), got {self.points.shape}")
+        if self.origins.ndim != 2 or self.origins.shape[1:] != (3,) or not np.isfinite(self.origins).all():
+            raise ValueError(f"MeasuredIn's origins must be finite, of shape (islands, 3), got {self.origins.shape}")
+        if not np.isfinite(self.det):
+            raise ValueError("MeasuredIn's determinant must be finite")
+        if sums is not None and not (np.ndim(sums[0]) == 0 and np.shape(sums[1]) == (2, len(self.origins))):
+            raise ValueError("MeasuredIn's sums must be (the total, (2, islands)), as measure_about gives them")
 
     def scaled(self):
         """(the total volume, (2, k): per island the volume and the sum of the terms' absolute
@@ -115,8 +128,8 @@ def origins_about(points, topology):
 def measure_about(points, origins, topology):
     """(total, (2, k)) of the faces of `topology` over points (V, 3), each island's terms about
     its row of origins (k, 3): the volume, and per island the volume and the sum of the terms'
-    absolute values, in the order a bind adds them up (one island: `chunked_sums`; islands: per
-    face, then per island, the total in the faces' order). NumPy; the compiled bind makes the
+    absolute values, as a bind adds them up (one island: `chunked_sums`; islands: per face, then
+    per island, and the total NumPy's sum of the faces' terms). NumPy; the compiled bind makes the
     same bits (`layout_kernels.face_volume_sums_about`, `face_volumes_about`)."""
     p = np.asarray(points, np.float64)
     rel = p - (origins[0] if topology.n_islands == 1 else origins[topology.labels])

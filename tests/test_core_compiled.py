@@ -943,6 +943,10 @@ def test_a_closed_meshs_volume_is_measured_as_it_comes_in_and_kept_only_for_the_
             own = vp.signed_volume(p64, f[topo.face_island == k])
             assert got.binding.rest_island_volumes[k] == pytest.approx(det * own, rel=1e-12)
         assert abs(got.volume / got.input_volume - 1) <= 1e-5
+    broken = v.astype(np.float32)
+    broken[[0, 5]] = np.nan            # (the first is among the positions an origin is taken from)
+    with pytest.raises(ValueError, match=r"non-finite coordinates at 2 vertices \(first: index 0\)"):
+        pipeline.evaluate(inputs(broken, frames[0][1]))
 
 
 def test_a_bind_measured_in_another_space_is_numpys_bit_for_bit(kernels):

@@ -278,7 +278,7 @@ class Pipeline:
         self.binding = None   # never keep a binding whose inputs are not all in its key
         self.binding = bind(lat, verts, topology.tris, influence=influence, dtype=inp.dtype,
                             topology=topology, use_compiled=compiled_layout, **extra)
-        if "measured_in" in extra:
+        if extra.get("measured_in") is not None:
             self._keep_volume(extra["measured_in"], topology)
         # `verts` is this pipeline's own array (`_lattice_space`, which never changes one it
         # returned, and returns it again while the positions and the matrix are unchanged): kept
@@ -308,7 +308,10 @@ class Pipeline:
         if (kept is not None and kept[0] is topology and kept[1].shape == X.shape
                 and np.array_equal(kept[1][::step], X[::step]) and same_array(kept[1], X)):
             return MeasuredIn(X, det, kept[2], kept[3])
-        return MeasuredIn(X, det, origins_about(X, topology))
+        origins = origins_about(X, topology)
+        if not np.isfinite(origins).all():
+            return None     # (non-finite positions: the bind says which, in words)
+        return MeasuredIn(X, det, origins)
 
     def _keep_volume(self, measured, topology):
         """Keep what `_measured_in` compares the next positions with: a copy of this frame's

@@ -519,8 +519,7 @@ def _compiled_layout(b, lattice, verts, s, runs, n_blocks, rows, rel, kernels, p
             return measured
         face, sums = measured       # (the total as `volume.measure_about` makes it)
         measured_in.sums = (float(sums[0, 0]) if face is None else float(face.sum()), sums)
-    total, sums = measured_in.scaled()
-    return None, sums, total
+    return _measured(b, measured_in)
 
 
 def stable_order(keys):
@@ -610,7 +609,8 @@ def _measured_positions(rest_verts, topology, kernels):
 
 def _measured(b, measured_in):
     """What `slot_faces` returns, from `measured_in` (`volume.MeasuredIn`), measuring its sums in
-    NumPy where they are not known yet: (None, the binding's (2, k) sums, its total volume)."""
+    NumPy where they are not known yet (the compiled layout measures them in its hand-over
+    first): (None, the binding's (2, k) sums, its total volume)."""
     if measured_in.sums is None:
         measured_in.sums = volume.measure_about(measured_in.points, measured_in.origins, b.topology)
     total, sums = measured_in.scaled()

@@ -26,11 +26,6 @@ from .offsets import float32_offsets
 from .volume import MeasuredIn, origins_about
 
 
-#: About how many of the positions `Pipeline` compares first with those whose volume it kept,
-#: evenly spaced in their order, before it compares them all.
-_COMPARED_FIRST = 512
-
-
 @dataclass(eq=False)
 class FrameInputs:
     """The inputs of one frame (arrays are not copied; do not change them afterwards).
@@ -303,10 +298,7 @@ class Pipeline:
             X = X.astype(np.float64)
         det = det3(np.asarray(inp.matrix, dtype=np.float64)[:3, :3])
         kept = self._volume
-        # (some hundred of the positions first: a mesh that deforms differs in most of them)
-        step = max(1, len(X) // _COMPARED_FIRST)
-        if (kept is not None and kept[0] is topology and kept[1].shape == X.shape
-                and np.array_equal(kept[1][::step], X[::step]) and same_array(kept[1], X)):
+        if kept is not None and kept[0] is topology and same_array(kept[1], X):
             return MeasuredIn(X, det, kept[2], kept[3])
         origins = origins_about(X, topology)
         if not np.isfinite(origins).all():

@@ -8,8 +8,8 @@ arrays are compared by content, numbers and strings by value, a `Lattice` by wha
 it (shape, interpolation, rest box), a `Cage` (large; the caller keeps one per rest state) and any
 other object by identity. `matches` answers "changed or not" as cheaply as it can: everything but
 the arrays first, then the arrays from the smallest (the lattice's points: what changes when only
-the lattice moves) to the largest, each by identity, then shape and type, then content in blocks,
-stopping at the first difference.
+the lattice moves) to the largest, each by identity, then shape and type, then a sample of the
+content, then the content in blocks, stopping at the first difference (`arrays.same_array`).
 """
 import dataclasses
 

@@ -145,6 +145,16 @@ MUTATIONS = {
         "        if kept is not None and kept[0] is topology and same_array(kept[1], X):",
         "        if kept is not None and kept[0] is topology:",
         ["tests/test_core_compiled.py", "-k", "kept_only_for_the_same_positions"], {}),
+    "runs-crossing-left": (
+        "vpffd_addon/solve_kernels.py",
+        "        if done[r] == 0:\n",
+        "        if done[r] == 2:\n",
+        ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
+    "runs-sums-carried": (
+        "vpffd_addon/solve_kernels.py",
+        "    while r < n_runs and run_start[r + 1] <= b1:\n        for q in range(64):\n            acc[q] = 0.0\n",
+        "    acc[:] = 0.0\n    while r < n_runs and run_start[r + 1] <= b1:\n",
+        ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
     "reembed-pads-unset": (
         "vpffd_addon/binding.py",
         "    b.x0[:, pads] = 0\n",

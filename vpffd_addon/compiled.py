@@ -426,13 +426,21 @@ def _smoke_solve(kernels, dtype):
             raise RuntimeError("the faces around the vertices were not made rings where they close")
         for xp, xq in ((X[1], X[2]), (X[1].astype(float), X[2].astype(float))):
             g, M, sums = np.empty(4), np.empty((1, 64)), np.empty((2, 1))
-            kernels["gradient_transpose"](xp, xq, start, entries, ring, params, x0[0], g, M, sums, 0, 1)
-            _team_agrees(kernels, "gradient_transpose", (xp, xq, start, entries, ring, params, x0[0], g, M, sums),
-                         1, (7, 8, 9))
+            runs, A, done = np.array([0, 1], np.int64), np.empty((64, 1)), np.zeros(1, np.uint8)
+            kernels["gradient_runs"](xp, xq, start, entries, ring, params, x0[0], g, M, sums, runs, A, done, 0, 1)
+            _team_agrees(kernels, "gradient_runs", (xp, xq, start, entries, ring, params, x0[0], g, M, sums,
+                                                    runs, A, done), 1, (7, 8, 9, 11, 12))
             ref = gradient_component(xp[faces], xq[faces], faces, 4)
             alpha = np.zeros((1, 64))
             kernels["reduce_blocks"](M, cell, np.zeros(1, np.int64), shape, coef, alpha)
-            if not (np.allclose(g, ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
+            # the run's sums as the pass made them, and as reduce_runs makes them where no part held the run
+            for A_, done_ in ((A.copy(), done.copy()), (np.empty((64, 1)), np.zeros(1, np.uint8))):
+                from_runs = np.zeros((1, 64))
+                kernels["reduce_runs"](M, runs, A_, done_, cell, np.zeros(1, np.int64), shape, coef, from_runs)
+                if not (done_[0] == 1 and np.array_equal(from_runs, alpha)):
+                    raise RuntimeError("the compiled transpose from the runs' sums differs from the blocks'")
+            if not (done[0] == 1 and np.allclose(g, ref, rtol=0, atol=tol)
+                    and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[0, 0], x0[0].astype(float) @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
                 raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
@@ -496,8 +504,9 @@ def _smoke_solve(kernels, dtype):
     if not np.array_equal(out, X.T.astype(float)):
         raise RuntimeError("the compiled vertices differ from the slots'")
     forward = (params, coef, cell, shape, D, x0)
-    _fused_agrees(kernels, forward, X, "gradient_transpose", (6, 7, 8), 1, lambda Y: (
-        Y[1], Y[2], start, entries, ring, params, x0[0], np.empty(4), np.empty((1, 64)), np.empty((2, 1))))
+    _fused_agrees(kernels, forward, X, "gradient_runs", (7, 8, 9, 11, 12), 1, lambda Y: (
+        Y[1], Y[2], start, entries, ring, params, x0[0], np.empty(4), np.empty((1, 64)), np.empty((2, 1)),
+        np.array([0, 1], np.int64), np.empty((64, 1)), np.zeros(1, np.uint8)))
     _fused_agrees(kernels, forward, X, "gradient_transpose3", (6, 7, 8), 1, lambda Y: (
         Y, start, entries, ring, params, x0, np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))))
     _fused_agrees(kernels, forward, X, "to_verts", (4,), 4, lambda Y: (
@@ -553,14 +562,34 @@ def _team_agrees(kernels, name, args, stop, outs, edges=None, check=None):
 
 
 class _Gradient:
-    """What one pass of `gradient_transpose` leaves: g (n_slots,) float64 and, per block, its
-    moments of g s (n_blocks, 64), whose sum `reduce_blocks` turns into (S B)^T g, and the sums
-    x0_a . g and |s g| (2, n_blocks)."""
+    """What one pass of `gradient_runs` leaves: g (n_slots,) float64 and, per block, its moments
+    of g s (n_blocks, 64), whose sum `reduce_blocks` turns into (S B)^T g, and the sums x0_a . g
+    and |s g| (2, n_blocks); with `n_runs`, also the moments of every run of blocks in one cell
+    (`cell_runs`) that one part held whole, summed (A (64, n_runs), done (n_runs,): which)."""
 
-    def __init__(self, n_slots, n_blocks):
+    def __init__(self, n_slots, n_blocks, n_runs=0):
         self.g = np.empty(n_slots)
         self.M = np.empty((n_blocks, 64))
         self.sums = np.empty((2, n_blocks))
+        self.A = np.empty((64, n_runs))
+        self.done = np.zeros(n_runs, np.uint8)
+
+
+def cell_runs(binding):
+    """(n_runs + 1,) int64: the first block of every run of consecutive blocks in one lattice cell
+    of `binding`, then the number of blocks; made once per binding (kept as `binding.cell_runs`).
+    A gradient pass sums each run's moments where one part holds the whole run (`gradient_runs`)."""
+    got = getattr(binding, "cell_runs", None)
+    if got is None:
+        cell = binding.block_cell
+        differs = cell[1:] != cell[:-1]
+        # (column by column: `.any(axis=1)` over three columns took four times as long, in every
+        # frame whose mesh moves through the lattice)
+        first = np.flatnonzero(differs[:, 0] | differs[:, 1] | differs[:, 2])
+        got = np.empty(len(first) + 2, np.int64)
+        got[0], got[1:-1], got[-1] = 0, first + 1, len(cell)
+        binding.cell_runs = got = got if len(cell) else got[:1]    # (no blocks: no runs)
+    return got
 
 
 class CompiledSteps(Steps):
@@ -665,9 +694,10 @@ class CompiledSteps(Steps):
         (in one hand-over with it where they can be)."""
         b = self.b
         start, inc, ring = incidence(b)
-        out = _Gradient(b.x0.shape[1], self.n_blocks)
-        self._refresh_then(components, D, "gradient_transpose", xp, xq, start, inc, ring, self.params, x0a,
-                           out.g, out.M, out.sums)
+        runs = cell_runs(b)
+        out = _Gradient(b.x0.shape[1], self.n_blocks, len(runs) - 1)
+        self._refresh_then(components, D, "gradient_runs", xp, xq, start, inc, ring, self.params, x0a,
+                           out.g, out.M, out.sums, runs, out.A, out.done)
         return out
 
     def axis_gradient(self, axis, D):
@@ -685,7 +715,7 @@ class CompiledSteps(Steps):
                            g, M, sums)
         out = []
         for a in range(3):
-            one = _Gradient.__new__(_Gradient)
+            one = _Gradient(0, 0)
             one.g, one.M, one.sums = g[a], M[a], sums[a]
             out.append(one)
         return tuple(out)
@@ -720,7 +750,10 @@ class CompiledSteps(Steps):
         b = self.b
         alpha = np.zeros((k, b.lattice.n_points))
         row = np.zeros(self.n_blocks, np.int64) if rows is None else b.block_island
-        self.K["reduce_blocks"](g.M, b.block_cell, row, self.shape, self.coef, alpha)
+        if rows is None and g.A.shape[1]:     # (one volume row: the runs by cell are its runs)
+            self.K["reduce_runs"](g.M, cell_runs(b), g.A, g.done, b.block_cell, row, self.shape, self.coef, alpha)
+        else:
+            self.K["reduce_blocks"](g.M, b.block_cell, row, self.shape, self.coef, alpha)
         return alpha
 
     def add_along(self, e, t):

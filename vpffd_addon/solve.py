@@ -22,6 +22,8 @@ _JOINT_ITERATIONS = 10   # Gauss-Newton steps for islands and pins (4 sufficed o
 #: The axes' unit directions (read-only: rows of it are handed around as directions).
 _EYE = np.eye(3)
 _EYE.flags.writeable = False
+#: the axis of each signed unit axis vector, by its coordinates (every solve asks per step)
+_AXIS_OF = {tuple(s * v for v in row): a for a, row in enumerate(np.eye(3).tolist()) for s in (1.0, -1.0)}
 _OVERFLOW = "the correction overflowed: coordinates or displacements are too large for floating point"
 
 
@@ -102,9 +104,9 @@ def _check_pins(pins, binding):
 def _frame(e):
     """(axis, p, q): the axis index when e is a coordinate axis (sign does not matter), else None
     with unit p, q completing e to a right-handed orthonormal frame (e, p, q)."""
-    k = int(np.argmax(np.abs(e)))
-    if np.count_nonzero(e) == 1:
-        return k, None, None
+    axis = _AXIS_OF.get(tuple(e.tolist()))
+    if axis is not None:
+        return axis, None, None
     a = np.zeros(3)
     a[int(np.argmin(np.abs(e)))] = 1.0
     p = np.cross(e, a)
@@ -265,7 +267,7 @@ class _State:
             # flux sum |s_v g_v| along e (e.g. a pure translation, or every point immobile).
             flux = self.k.flux(g, *self._rows)
             weighted = alpha if self.mob is None else alpha * np.sqrt(self.mob)
-            movable = np.linalg.norm(weighted, axis=1) > self.degenerate * flux
+            movable = _row_norms(weighted) > self.degenerate * flux
             volume_rows = np.flatnonzero(movable)
             for r in volume_rows:
                 rows.append(alpha[r])
@@ -424,6 +426,12 @@ def _mv(A, x):
     cores from the next passes and from Blender (docs/performance.md, "Keep BLAS out of the
     frame"); `einsum` without `optimize` sums in its own loop."""
     return np.einsum("ij,j->i", A, x)
+
+
+def _row_norms(A):
+    """(k,) Euclidean norms of the rows of A (k, n): `np.linalg.norm(A, axis=1)` less its checks and
+    dispatch (a solve asks on every step)."""
+    return np.sqrt(np.einsum("ij,ij->i", A, A))
 
 
 def _mm(A, B):
@@ -590,7 +598,7 @@ def solve(binding, points, axes="XYZ", directions=None, volume_scale=1.0, preser
         warnings.append("the lattice mirrors space here: the mirrored shape keeps the size of the "
                         "volume (its sign turns with it)")
     P_in = np.asarray(points, dtype=np.float64)
-    reach = float(np.linalg.norm(st.P - P_in, axis=1).max()) if len(P_in) else 0.0
+    reach = float(_row_norms(st.P - P_in).max()) if len(P_in) else 0.0
     if reach > b.lattice.diagonal:
         # A correction this large is no correction but a different shape (a lattice flattened
         # across a direction, a fold): show the plain deformation and say why.

@@ -16,7 +16,8 @@ with no stored weights:
   per block the two sums and the block's 64 moments of g s in the cell coordinates;
   `reduce_blocks` adds the moments up in block order, a run of blocks in one cell at a time, and
   turns each run's into the entries of (S B)^T g at the cell's control points by the same cubics.
-  So a result is the same whatever the number of threads.
+  So a result is the same whatever the number of threads. `gradient_runs` is the pass with the
+  runs' sums made in it where a part holds a run whole, and `reduce_runs` the transpose from them.
 
 Blender's taps i-1..i+2 are clamped to the grid: a block gathers its control points at the clamped
 indices (repeating the end points) instead of folding the weights, which is the same sum. Every
@@ -34,10 +35,22 @@ import numpy as np
 from .bases import CARDINAL_FC
 
 
+_CONSTANTS = {}
+
+
 def constants(interpolation, dtype):
     """(3, 4, 4) in `dtype`: per axis, the coefficients of its four weights as cubics in t
     (``w_k = sum_p c[k, p] t^p``): Blender's key_curve_position_weights (`bases._local_weights`)
-    multiplied out, so that one loop serves every kind."""
+    multiplied out, so that one loop serves every kind. Made once per kind and precision and
+    shared (every solve asks; the kernels only read it), so callers must not write to it."""
+    key = (tuple(interpolation), np.dtype(dtype).str)
+    got = _CONSTANTS.get(key)
+    if got is None:
+        got = _CONSTANTS[key] = _constants(interpolation, dtype)
+    return got
+
+
+def _constants(interpolation, dtype):
     c = np.zeros((3, 4, 4))
     for a, kind in enumerate(interpolation):
         if kind == "LINEAR":
@@ -299,6 +312,36 @@ def gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, b0
         block_moments(gs, bs, pu, pv, pw, h, M[bl])
 
 
+def gradient_runs(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, run_start, A, done, b0, b1):
+    # `gradient_transpose` over blocks b0..b1-1, then the sums of the moments of every run of
+    # blocks in one cell that lies wholly in b0..b1-1 (`sum_runs`), while they are still in this
+    # thread's caches: the calling thread's `reduce_runs` then reads the runs' sums instead of every
+    # block's moments, written on other cores (docs/performance.md, "The runs' sums in the
+    # gradient pass"). run_start (n_runs + 1,): every run's first block, then n_blocks.
+    _k_gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, b0, b1)  # noqa: F821
+    _k_sum_runs(M, run_start, A, done, b0, b1)  # noqa: F821
+
+
+def sum_runs(M, run_start, A, done, b0, b1):
+    # Every run r (blocks run_start[r]..run_start[r + 1] - 1) lying wholly in blocks b0..b1-1: its
+    # blocks' moments M (n_blocks, 64) added up in block order into column r of A (64, n_runs),
+    # from zero, as `reduce_blocks` adds them; done[r] = 1. Compiled without reordered sums.
+    n_runs = A.shape[1]
+    acc = np.empty(64)
+    r = np.searchsorted(run_start[:n_runs], b0)
+    while r < n_runs and run_start[r + 1] <= b1:
+        for q in range(64):
+            acc[q] = 0.0
+        for bl in range(run_start[r], run_start[r + 1]):
+            moments = M[bl]
+            for q in range(64):
+                acc[q] += moments[q]
+        for q in range(64):
+            A[q, r] = acc[q]
+        done[r] = 1
+        r += 1
+
+
 def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1):
     # `gradient_transpose` for the three axes at once, from one gathering of the faces around each
     # slot (the gradient along axis a is component a of the sum of the faces' cross products):
@@ -410,6 +453,28 @@ def reduce_blocks(M, block_cell, block_row, shape, c, alpha):
         for q in range(64):
             A[q, r] = acc[q]
             acc[q] = 0.0
+    runs_to_points(A, last[:n_runs], block_cell, block_row, shape, c, alpha)
+
+
+def reduce_runs(M, run_start, A, done, block_cell, block_row, shape, c, alpha):
+    # `reduce_blocks` from the runs' sums that the gradient passes made (`gradient_runs`: columns
+    # of A (64, n_runs) with done[r] = 1), the runs of blocks in one cell (run_start (n_runs + 1,)),
+    # one volume row (block_row: zeros). The runs they left, those crossing from one part into the
+    # next, are added up here from M first, in the same order: the same result bit for bit.
+    n_runs = A.shape[1]
+    for r in range(n_runs):
+        if done[r] == 0:
+            _k_sum_runs(M, run_start, A, done, run_start[r], run_start[r + 1])  # noqa: F821
+    last = np.empty(n_runs, np.int64)
+    for r in range(n_runs):
+        last[r] = run_start[r + 1] - 1
+    runs_to_points(A, last, block_cell, block_row, shape, c, alpha)
+
+
+def runs_to_points(A, last, block_cell, block_row, shape, c, alpha):
+    # Every run's moments summed (A (64, n_runs), overwritten) turned into the entries of its
+    # cell's control points and added to alpha[row] in run order (`last`: every run's last block).
+    n_runs = A.shape[1]
     B = np.empty((64, n_runs))
     change_basis_runs(A, c, 0, B)
     change_basis_runs(B, c, 1, A)
@@ -719,10 +784,10 @@ def forward_team(edges, params, c, block_cell, shape, D, x0, comps, X):
         _k_forward(params, c, block_cell, shape, D, x0, comps, X, edges[k], edges[k + 1])  # noqa: F821
 
 
-def gradient_transpose_team(edges, xp, xq, inc_start, inc, ring, params, x0a, g, M, sums):
+def gradient_runs_team(edges, xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, run_start, A, done):
     for k in prange(edges.shape[0] - 1):
-        _k_gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums,  # noqa: F821
-                              edges[k], edges[k + 1])
+        _k_gradient_runs(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums,  # noqa: F821
+                         run_start, A, done, edges[k], edges[k + 1])
 
 
 def gradient_transpose3_team(edges, X, inc_start, inc, ring, params, x0, g, M, sums):
@@ -766,12 +831,13 @@ def arrive_and_wait(sync, n, looks):
     return wait_count(sync, 0, n, looks)
 
 
-def forward_then_gradient_transpose(params, c, block_cell, shape, D, x0, comps, X,
-                                    xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums,
-                                    sync, k, spins, b0, b1, v0, v1):
+def forward_then_gradient_runs(params, c, block_cell, shape, D, x0, comps, X,
+                               xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums, run_start, A, done,
+                               sync, k, spins, b0, b1, v0, v1):
     _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
     if arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
-        _k_gradient_transpose(xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums, v0, v1)  # noqa: F821
+        _k_gradient_runs(xp, xq, inc_start, inc, ring, params2, x0a, g, M, sums, run_start, A, done,  # noqa: F821
+                         v0, v1)
         sync[2 + k] = 1
     fetch_add(sync, 1, 1)  # noqa: F821
 
@@ -797,12 +863,13 @@ def forward_then_to_verts(params, c, block_cell, shape, D, x0, comps, X,
     fetch_add(sync, 1, 1)  # noqa: F821
 
 
-_FUSED = ("forward_then_gradient_transpose", "forward_then_gradient_transpose3", "forward_then_to_verts")
-_TEAMS = ("forward", "gradient_transpose", "gradient_transpose3", "slot_incidence_fill", "to_verts")
-_HELPERS = ("same_cell", "taps", "change_basis", "change_basis_runs", "block_powers", "block_moments", "triangular_solve",
-            "fan_gradient", "cell_polynomial")
+_FUSED = ("forward_then_gradient_runs", "forward_then_gradient_transpose3", "forward_then_to_verts")
+_TEAMS = ("forward", "gradient_runs", "gradient_transpose3", "slot_incidence_fill", "to_verts")
+_HELPERS = ("same_cell", "taps", "change_basis", "change_basis_runs", "runs_to_points", "block_powers",
+            "block_moments", "triangular_solve", "fan_gradient", "cell_polynomial")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
-            "reduce_blocks": "njit", "householder": "njit_sums", "apply_q": "njit_sums",
+            "sum_runs": "njit", "gradient_runs": "njit",
+            "reduce_blocks": "njit", "reduce_runs": "njit", "householder": "njit_sums", "apply_q": "njit_sums",
             "condition": "njit", "triangular_solve": "njit",
             "vertex_incidence": "njit", "vertex_rings": "njit", "slot_incidence_start": "njit",
             "slot_incidence_fill": "njit",

@@ -47,8 +47,8 @@ MUTATIONS = {
         ["tests/test_core_compiled.py", "tests/test_compiled_blender.py"], {}),
     "compiled-transpose-axis": (
         "vpffd_addon/solve_kernels.py",
-        "    change_basis_runs(B, c, 1, A)\n",
-        "    change_basis_runs(B, c, 0, A)\n",
+        "    change_basis_runs(B, c, 1, C)\n",
+        "    change_basis_runs(B, c, 0, C)\n",
         ["tests/test_core_compiled.py"], {}),
     "moments-run-rows": (
         "vpffd_addon/solve_kernels.py",
@@ -154,6 +154,16 @@ MUTATIONS = {
         "vpffd_addon/solve_kernels.py",
         "    while r < n_runs and run_start[r + 1] <= b1:\n        for q in range(64):\n            acc[q] = 0.0\n",
         "    acc[:] = 0.0\n    while r < n_runs and run_start[r + 1] <= b1:\n",
+        ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
+    "runs3-one-axis": (
+        "vpffd_addon/solve_kernels.py",
+        "    for a in range(3):\n        _k_sum_runs(M[a], run_start, A[a], done[a], b0, b1)",
+        "    for a in range(1):\n        _k_sum_runs(M[a], run_start, A[a], done[a], b0, b1)",
+        ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
+    "runs-sums-overwritten": (
+        "vpffd_addon/solve_kernels.py",
+        "    change_basis_runs(B, c, 1, C)\n    change_basis_runs(C, c, 2, B)",
+        "    change_basis_runs(B, c, 1, A)\n    change_basis_runs(A, c, 2, B)",
         ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
     "reembed-pads-unset": (
         "vpffd_addon/binding.py",

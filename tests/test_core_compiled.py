@@ -87,17 +87,22 @@ def test_the_compiled_pass_equals_numpys_gradient_and_sums(kernels, dtype, islan
 
 @pytest.mark.parametrize("shape", [(2, 2, 2), (10, 10, 10)])
 @pytest.mark.parametrize("team_parts", [3, 100])
+@pytest.mark.parametrize("islands", [False, True])
 def test_the_runs_summed_in_the_gradient_pass_give_the_blocks_transpose_bit_for_bit(kernels, shape, team_parts,
-                                                                                     monkeypatch):
-    # A gradient pass sums the moments of every run of blocks in one cell that its part holds whole
-    # (`gradient_runs`); the transpose adds up the runs no part held whole and turns them all into
-    # the control points' entries. That must be what `reduce_blocks` makes from every block's
-    # moments, bit for bit, however the parts cut the runs: a 2x2x2 lattice has one cell, so one run
-    # that every cut crosses; 10x10x10 a few hundred. On the Python threads and (team_parts 3) on
-    # numba's.
+                                                                                     islands, monkeypatch):
+    # A gradient pass sums the moments of every run of blocks in one cell and island that its part
+    # holds whole (`gradient_runs`, and `gradient_runs3` for the three axes at once); the transpose
+    # adds up the runs no part held whole and turns them all into the control points' entries.
+    # That must be what `reduce_blocks` makes from every block's moments, bit for bit, however the
+    # parts cut the runs, for one volume and (islands) a row per island: a 2x2x2 lattice has one
+    # cell, so one run per island that every cut crosses; 10x10x10 a few hundred. On the Python
+    # threads and (team_parts 3) on numba's. Asked for twice, a transpose gives the same.
     monkeypatch.setattr(compiled, "TEAM_PARTS", team_parts)
     monkeypatch.setattr(parallel, "MIN_VERTS_PER_PART", 1024)      # (5 parts of a small mesh)
     v, f = vp.icosphere(5, 0.45)
+    if islands:     # (two bodies, the small one inside the big one's cells)
+        v2, f2 = vp.icosphere(3, 0.1)
+        v, f = np.vstack([v, v2 + 0.05]), np.vstack([f, f2 + len(v)])
     lat = vp.Lattice(shape, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
     P = lat.rest_points * [1.0, 1.1, 0.6]
     previous = parallel.set_workers(1)
@@ -106,29 +111,35 @@ def test_the_runs_summed_in_the_gradient_pass_give_the_blocks_transpose_bit_for_
         for n in (1, 2, 3, 5):
             parallel.set_workers(n)
             b = vp.bind(lat, v, f, dtype=np.float32)
-            assert len(b.block_parts) == n
+            assert len(b.block_parts) == n and b.n_islands == 1 + islands
+            rows, k = (b.slot_island, b.n_islands) if islands else (None, 1)
+            block_row = b.block_island if islands else np.zeros(len(b.block_cell), np.int64)
             steps = kernels.CompiledSteps(b)
             D = P - lat.rest_points
             runs = compiled.cell_runs(b)
+            assert np.array_equal(b.block_island[runs[:-1]], np.sort(b.block_island[runs[:-1]]))
+            crossed = [r for r in range(len(runs) - 1) if any(
+                p.start in range(runs[r] + 1, runs[r + 1]) for p in b.block_parts)]
+            three = steps.axis_gradients(D)
             for axis in range(3):
-                g = steps.axis_gradient(axis, D)
-                crossed = [r for r in range(len(runs) - 1) if any(
-                    p.start in range(runs[r] + 1, runs[r + 1]) for p in b.block_parts)]
-                assert [r for r in range(len(runs) - 1) if not g.done[r]] == crossed
-                from_blocks = np.zeros((1, lat.n_points))
-                kernels.kernels()["reduce_blocks"](g.M, b.block_cell, np.zeros(len(b.block_cell), np.int64),
-                                                   steps.shape, steps.coef, from_blocks)
-                alpha = steps.transpose(g, None, 1)
-                np.testing.assert_array_equal(alpha, from_blocks)
-                results.setdefault(axis, []).append(alpha)
+                for way, g in (("one", steps.axis_gradient(axis, D)), ("three", three[axis])):
+                    assert [r for r in range(len(runs) - 1) if not g.done[r]] == crossed
+                    from_blocks = np.zeros((k, lat.n_points))
+                    kernels.kernels()["reduce_blocks"](g.M, b.block_cell, block_row, steps.shape, steps.coef,
+                                                       from_blocks)
+                    alpha = steps.transpose(g, rows, k)
+                    np.testing.assert_array_equal(alpha, from_blocks)
+                    np.testing.assert_array_equal(steps.transpose(g, rows, k), alpha)
+                    results.setdefault((axis, way), []).append(alpha)
                 steps.stale((axis + 1) % 3)
             if shape == (2, 2, 2):
-                assert len(runs) == 2 and bool(crossed) == (n > 1)
+                assert len(runs) == 2 + islands and bool(crossed) == (n > 1)
     finally:
         parallel.set_workers(previous)
-    for axis, got in results.items():
+    for key, got in results.items():
         for alpha in got[1:]:
             np.testing.assert_array_equal(alpha, got[0])
+
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_the_compiled_forward_product_and_vertices_equal_numpys(kernels, dtype):
@@ -528,7 +539,7 @@ def test_two_passes_in_one_hand_over_are_the_two_passes_bit_for_bit(kernels, dty
             results[way] = [one.verts, one.points, many.verts, many.points, np.asarray(many.island_volumes)]
     finally:
         parallel.set_workers(previous)
-    assert set(calls) == {"forward_then_gradient_runs", "forward_then_gradient_transpose3",
+    assert set(calls) == {"forward_then_gradient_runs", "forward_then_gradient_runs3",
                           "forward_then_to_verts"}, calls
     for way in ("wait", "skip", "sleep", "neither"):
         for a, ref in zip(results[way], results["off"]):

@@ -445,12 +445,21 @@ def _smoke_solve(kernels, dtype):
                     and np.isclose(sums[1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
                 raise RuntimeError("the compiled gradient pass differs from NumPy's sums")
         g, M, sums = np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))
-        kernels["gradient_transpose3"](X, start, entries, ring, params, x0, g, M, sums, 0, 1)
-        _team_agrees(kernels, "gradient_transpose3", (X, start, entries, ring, params, x0, g, M, sums), 1, (6, 7, 8))
+        A, done = np.empty((3, 64, 1)), np.zeros((3, 1), np.uint8)
+        kernels["gradient_runs3"](X, start, entries, ring, params, x0, g, M, sums, runs, A, done, 0, 1)
+        _team_agrees(kernels, "gradient_runs3", (X, start, entries, ring, params, x0, g, M, sums, runs, A, done), 1,
+                     (6, 7, 8, 10, 11))
         for a in range(3):
             ref = gradient_component(X[(a + 1) % 3][faces], X[(a + 2) % 3][faces], faces, 4)
             alpha = np.zeros((1, 64))
             kernels["reduce_blocks"](M[a], cell, np.zeros(1, np.int64), shape, coef, alpha)
+            # (twice from the same runs' sums: a gradient's transpose may be asked for again)
+            from_runs = np.zeros((2, 64))
+            for row in (0, 1):
+                kernels["reduce_runs"](M[a], runs, A[a], done[a], cell, np.array([row]), shape, coef, from_runs)
+            if not (done[a, 0] == 1 and np.array_equal(from_runs[0], alpha[0])
+                    and np.array_equal(from_runs[1], alpha[0])):
+                raise RuntimeError("the compiled three-axis transpose from the runs' sums differs from the blocks'")
             if not (np.allclose(g[a], ref, rtol=0, atol=tol) and np.allclose(alpha[0], SB.T @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[a, 0, 0], x0[a].astype(float) @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[a, 1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
@@ -507,8 +516,9 @@ def _smoke_solve(kernels, dtype):
     _fused_agrees(kernels, forward, X, "gradient_runs", (7, 8, 9, 11, 12), 1, lambda Y: (
         Y[1], Y[2], start, entries, ring, params, x0[0], np.empty(4), np.empty((1, 64)), np.empty((2, 1)),
         np.array([0, 1], np.int64), np.empty((64, 1)), np.zeros(1, np.uint8)))
-    _fused_agrees(kernels, forward, X, "gradient_transpose3", (6, 7, 8), 1, lambda Y: (
-        Y, start, entries, ring, params, x0, np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1))))
+    _fused_agrees(kernels, forward, X, "gradient_runs3", (6, 7, 8, 10, 11), 1, lambda Y: (
+        Y, start, entries, ring, params, x0, np.empty((3, 4)), np.empty((3, 1, 64)), np.empty((3, 2, 1)),
+        np.array([0, 1], np.int64), np.empty((3, 64, 1)), np.zeros((3, 1), np.uint8)))
     _fused_agrees(kernels, forward, X, "to_verts", (4,), 4, lambda Y: (
         Y, slot, np.zeros((1, 3)), np.zeros(4, np.int64), np.empty((4, 3))))
 
@@ -563,9 +573,10 @@ def _team_agrees(kernels, name, args, stop, outs, edges=None, check=None):
 
 class _Gradient:
     """What one pass of `gradient_runs` leaves: g (n_slots,) float64 and, per block, its moments
-    of g s (n_blocks, 64), whose sum `reduce_blocks` turns into (S B)^T g, and the sums x0_a . g
+    of g s (n_blocks, 64), whose sum `reduce_runs` turns into (S B)^T g, and the sums x0_a . g
     and |s g| (2, n_blocks); with `n_runs`, also the moments of every run of blocks in one cell
-    (`cell_runs`) that one part held whole, summed (A (64, n_runs), done (n_runs,): which)."""
+    and island (`cell_runs`) that one part held whole, summed (A (64, n_runs), done (n_runs,):
+    which). `A` and `done` may be views of a three-axis pass's arrays (`axis_gradients`)."""
 
     def __init__(self, n_slots, n_blocks, n_runs=0):
         self.g = np.empty(n_slots)
@@ -576,19 +587,16 @@ class _Gradient:
 
 
 def cell_runs(binding):
-    """(n_runs + 1,) int64: the first block of every run of consecutive blocks in one lattice cell
-    of `binding`, then the number of blocks; made once per binding (kept as `binding.cell_runs`).
-    A gradient pass sums each run's moments where one part holds the whole run (`gradient_runs`)."""
+    """(n_runs + 1,) int64: the first block of every run of `binding` (its blocks in one island
+    and lattice cell, `Binding.run_first_block`), then the number of blocks; made once per binding
+    (kept as `binding.cell_runs`). A gradient pass sums each run's moments where one part holds
+    the whole run (`gradient_runs`)."""
     got = getattr(binding, "cell_runs", None)
     if got is None:
-        cell = binding.block_cell
-        differs = cell[1:] != cell[:-1]
-        # (column by column: `.any(axis=1)` over three columns took four times as long, in every
-        # frame whose mesh moves through the lattice)
-        first = np.flatnonzero(differs[:, 0] | differs[:, 1] | differs[:, 2])
-        got = np.empty(len(first) + 2, np.int64)
-        got[0], got[1:-1], got[-1] = 0, first + 1, len(cell)
-        binding.cell_runs = got = got if len(cell) else got[:1]    # (no blocks: no runs)
+        first = binding.run_first_block
+        got = np.empty(len(first) + 1, np.int64)
+        got[:-1], got[-1] = first, len(binding.block_cell)
+        binding.cell_runs = got
     return got
 
 
@@ -706,17 +714,19 @@ class CompiledSteps(Steps):
 
     def axis_gradients(self, D):
         """The three axis gradients at the same coordinates, from one pass over the faces
-        (`solve_kernels.gradient_transpose3`): (g_x, g_y, g_z) as `axis_gradient` gives them."""
+        (`solve_kernels.gradient_runs3`): (g_x, g_y, g_z) as `axis_gradient` gives them."""
         b = self.b
         start, inc, ring = incidence(b)
-        n_slots = b.x0.shape[1]
+        runs = cell_runs(b)
+        n_slots, n_runs = b.x0.shape[1], len(runs) - 1
         g, M, sums = np.empty((3, n_slots)), np.empty((3, self.n_blocks, 64)), np.empty((3, 2, self.n_blocks))
-        self._refresh_then((0, 1, 2), D, "gradient_transpose3", self.X, start, inc, ring, self.params, self.x0,
-                           g, M, sums)
+        A, done = np.empty((3, 64, n_runs)), np.zeros((3, n_runs), np.uint8)
+        self._refresh_then((0, 1, 2), D, "gradient_runs3", self.X, start, inc, ring, self.params, self.x0,
+                           g, M, sums, runs, A, done)
         out = []
         for a in range(3):
             one = _Gradient(0, 0)
-            one.g, one.M, one.sums = g[a], M[a], sums[a]
+            one.g, one.M, one.sums, one.A, one.done = g[a], M[a], sums[a], A[a], done[a]
             out.append(one)
         return tuple(out)
 
@@ -750,10 +760,8 @@ class CompiledSteps(Steps):
         b = self.b
         alpha = np.zeros((k, b.lattice.n_points))
         row = np.zeros(self.n_blocks, np.int64) if rows is None else b.block_island
-        if rows is None and g.A.shape[1]:     # (one volume row: the runs by cell are its runs)
+        if g.A.shape[1]:
             self.K["reduce_runs"](g.M, cell_runs(b), g.A, g.done, b.block_cell, row, self.shape, self.coef, alpha)
-        else:
-            self.K["reduce_blocks"](g.M, b.block_cell, row, self.shape, self.coef, alpha)
         return alpha
 
     def add_along(self, e, t):

@@ -16,8 +16,9 @@ with no stored weights:
   per block the two sums and the block's 64 moments of g s in the cell coordinates;
   `reduce_blocks` adds the moments up in block order, a run of blocks in one cell at a time, and
   turns each run's into the entries of (S B)^T g at the cell's control points by the same cubics.
-  So a result is the same whatever the number of threads. `gradient_runs` is the pass with the
-  runs' sums made in it where a part holds a run whole, and `reduce_runs` the transpose from them.
+  So a result is the same whatever the number of threads. `gradient_runs` (`gradient_runs3` for
+  three axes) is the pass with the runs' sums made in it where a part holds a run whole, and
+  `reduce_runs` the transpose from them.
 
 Blender's taps i-1..i+2 are clamped to the grid: a block gathers its control points at the clamped
 indices (repeating the end points) instead of folding the weights, which is the same sum. Every
@@ -223,26 +224,100 @@ def block_moments(gs, bs, pu, pv, pw, h, M):
     # sum_s g s w^r v^q u^p, g = gs (bs,), from the powers of `block_powers` (h (bs,) scratch):
     # what the block gives (S B)^T g, turned into the control points' entries by `reduce_blocks`
     # once per run of blocks in one cell (the change of basis is linear, so the moments of a run
-    # add up first).
+    # add up first). Two powers of v at a time: a slot's powers of u are read once for both.
     for r in range(4):
         for s in range(bs):
             h[s] = gs[s] * pw[r, s]
-        for q in range(4):
+        for q in range(0, 4, 2):
             a0 = 0.0
             a1 = 0.0
             a2 = 0.0
             a3 = 0.0
+            b0 = 0.0
+            b1 = 0.0
+            b2 = 0.0
+            b3 = 0.0
             for s in range(bs):
+                u1 = pu[1, s]
+                u2 = pu[2, s]
+                u3 = pu[3, s]
                 x = h[s] * pv[q, s]
                 a0 += x
-                a1 += x * pu[1, s]
-                a2 += x * pu[2, s]
-                a3 += x * pu[3, s]
+                a1 += x * u1
+                a2 += x * u2
+                a3 += x * u3
+                y = h[s] * pv[q + 1, s]
+                b0 += y
+                b1 += y * u1
+                b2 += y * u2
+                b3 += y * u3
             o = (r * 4 + q) * 4
             M[o] = a0
             M[o + 1] = a1
             M[o + 2] = a2
             M[o + 3] = a3
+            M[o + 4] = b0
+            M[o + 5] = b1
+            M[o + 6] = b2
+            M[o + 7] = b3
+
+
+def block_moments3(gs, bs, pu, pv, pw, h, M0, M1, M2):
+    # `block_moments` of three gradients at once, gs (3, bs) into M0, M1, M2 (64,) (h (3, bs)
+    # scratch): every slot's powers are read once for the three, which halves the loads that
+    # bound the loop.
+    for r in range(4):
+        for s in range(bs):
+            p = pw[r, s]
+            h[0, s] = gs[0, s] * p
+            h[1, s] = gs[1, s] * p
+            h[2, s] = gs[2, s] * p
+        for q in range(4):
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            a3 = 0.0
+            b0 = 0.0
+            b1 = 0.0
+            b2 = 0.0
+            b3 = 0.0
+            c0 = 0.0
+            c1 = 0.0
+            c2 = 0.0
+            c3 = 0.0
+            for s in range(bs):
+                v = pv[q, s]
+                u1 = pu[1, s]
+                u2 = pu[2, s]
+                u3 = pu[3, s]
+                x = h[0, s] * v
+                a0 += x
+                a1 += x * u1
+                a2 += x * u2
+                a3 += x * u3
+                y = h[1, s] * v
+                b0 += y
+                b1 += y * u1
+                b2 += y * u2
+                b3 += y * u3
+                z = h[2, s] * v
+                c0 += z
+                c1 += z * u1
+                c2 += z * u2
+                c3 += z * u3
+            o = (r * 4 + q) * 4
+            M0[o] = a0
+            M0[o + 1] = a1
+            M0[o + 2] = a2
+            M0[o + 3] = a3
+            M1[o] = b0
+            M1[o + 1] = b1
+            M1[o + 2] = b2
+            M1[o + 3] = b3
+            M2[o] = c0
+            M2[o + 1] = c1
+            M2[o + 2] = c2
+            M2[o + 3] = c3
 
 
 def fan_gradient(xp, xq, fan, is_ring):
@@ -314,10 +389,11 @@ def gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, b0
 
 def gradient_runs(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, run_start, A, done, b0, b1):
     # `gradient_transpose` over blocks b0..b1-1, then the sums of the moments of every run of
-    # blocks in one cell that lies wholly in b0..b1-1 (`sum_runs`), while they are still in this
-    # thread's caches: the calling thread's `reduce_runs` then reads the runs' sums instead of every
-    # block's moments, written on other cores (docs/performance.md, "The runs' sums in the
-    # gradient pass"). run_start (n_runs + 1,): every run's first block, then n_blocks.
+    # blocks in one cell and island that lies wholly in b0..b1-1 (`sum_runs`), while they are still
+    # in this thread's caches: the calling thread's `reduce_runs` then reads the runs' sums instead
+    # of every block's moments, written on other cores (docs/performance.md, "The runs' sums in the
+    # gradient pass"). run_start (n_runs + 1,): every run's first block, then n_blocks
+    # (`compiled.cell_runs`).
     _k_gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, b0, b1)  # noqa: F821
     _k_sum_runs(M, run_start, A, done, b0, b1)  # noqa: F821
 
@@ -342,6 +418,14 @@ def sum_runs(M, run_start, A, done, b0, b1):
         r += 1
 
 
+def gradient_runs3(X, inc_start, inc, ring, params, x0, g, M, sums, run_start, A, done, b0, b1):
+    # `gradient_transpose3` over blocks b0..b1-1, then each axis's runs' sums as `gradient_runs`
+    # makes them: A (3, 64, n_runs), done (3, n_runs).
+    _k_gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1)  # noqa: F821
+    for a in range(3):
+        _k_sum_runs(M[a], run_start, A[a], done[a], b0, b1)  # noqa: F821
+
+
 def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1):
     # `gradient_transpose` for the three axes at once, from one gathering of the faces around each
     # slot (the gradient along axis a is component a of the sum of the faces' cross products):
@@ -351,7 +435,7 @@ def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1)
     bs = g.shape[1] // n_blocks
     pu, pv, pw = np.empty((4, bs)), np.empty((4, bs)), np.empty((4, bs))
     gs = np.empty((3, bs))
-    h = np.empty(bs)
+    h = np.empty((3, bs))
     x = X[0]
     y = X[1]
     z = X[2]
@@ -418,8 +502,7 @@ def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1)
         sums[1, 1, bl] = sf1
         sums[2, 1, bl] = sf2
         block_powers(params, base, bs, pu, pv, pw)
-        for a in range(3):
-            block_moments(gs[a], bs, pu, pv, pw, h, M[a, bl])
+        block_moments3(gs, bs, pu, pv, pw, h, M[0, bl], M[1, bl], M[2, bl])
 
 
 def reduce_blocks(M, block_cell, block_row, shape, c, alpha):
@@ -458,9 +541,10 @@ def reduce_blocks(M, block_cell, block_row, shape, c, alpha):
 
 def reduce_runs(M, run_start, A, done, block_cell, block_row, shape, c, alpha):
     # `reduce_blocks` from the runs' sums that the gradient passes made (`gradient_runs`: columns
-    # of A (64, n_runs) with done[r] = 1), the runs of blocks in one cell (run_start (n_runs + 1,)),
-    # one volume row (block_row: zeros). The runs they left, those crossing from one part into the
-    # next, are added up here from M first, in the same order: the same result bit for bit.
+    # of A (64, n_runs) with done[r] = 1), the runs of blocks in one cell and island (run_start
+    # (n_runs + 1,)); block_row: zeros for one volume row, the blocks' islands for a row each. The
+    # runs they left, those crossing from one part into the next, are added up here from M first,
+    # in the same order: the same result bit for bit.
     n_runs = A.shape[1]
     for r in range(n_runs):
         if done[r] == 0:
@@ -472,13 +556,15 @@ def reduce_runs(M, run_start, A, done, block_cell, block_row, shape, c, alpha):
 
 
 def runs_to_points(A, last, block_cell, block_row, shape, c, alpha):
-    # Every run's moments summed (A (64, n_runs), overwritten) turned into the entries of its
-    # cell's control points and added to alpha[row] in run order (`last`: every run's last block).
+    # Every run's moments summed (A (64, n_runs), read only: a gradient's transpose may be asked
+    # for again) turned into the entries of its cell's control points and added to alpha[row] in
+    # run order (`last`: every run's last block).
     n_runs = A.shape[1]
     B = np.empty((64, n_runs))
+    C = np.empty((64, n_runs))
     change_basis_runs(A, c, 0, B)
-    change_basis_runs(B, c, 1, A)
-    change_basis_runs(A, c, 2, B)
+    change_basis_runs(B, c, 1, C)
+    change_basis_runs(C, c, 2, B)
     # (a cell whose 64 control points are all inside the lattice: at fixed offsets from its first)
     nu, nv, nw = shape[0], shape[1], shape[2]
     offset = np.empty(64, np.int64)
@@ -790,9 +876,10 @@ def gradient_runs_team(edges, xp, xq, inc_start, inc, ring, params, x0a, g, M, s
                          run_start, A, done, edges[k], edges[k + 1])
 
 
-def gradient_transpose3_team(edges, X, inc_start, inc, ring, params, x0, g, M, sums):
+def gradient_runs3_team(edges, X, inc_start, inc, ring, params, x0, g, M, sums, run_start, A, done):
     for k in prange(edges.shape[0] - 1):
-        _k_gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, edges[k], edges[k + 1])  # noqa: F821
+        _k_gradient_runs3(X, inc_start, inc, ring, params, x0, g, M, sums,  # noqa: F821
+                          run_start, A, done, edges[k], edges[k + 1])
 
 
 def slot_incidence_fill_team(edges, slot, rstart, entries_v, ring_v, start, entries, ring):
@@ -842,12 +929,13 @@ def forward_then_gradient_runs(params, c, block_cell, shape, D, x0, comps, X,
     fetch_add(sync, 1, 1)  # noqa: F821
 
 
-def forward_then_gradient_transpose3(params, c, block_cell, shape, D, x0, comps, X,
-                                     X2, inc_start, inc, ring, params2, x02, g, M, sums,
-                                     sync, k, spins, b0, b1, v0, v1):
+def forward_then_gradient_runs3(params, c, block_cell, shape, D, x0, comps, X,
+                                X2, inc_start, inc, ring, params2, x02, g, M, sums, run_start, A, done,
+                                sync, k, spins, b0, b1, v0, v1):
     _k_forward(params, c, block_cell, shape, D, x0, comps, X, b0, b1)  # noqa: F821
     if arrive_and_wait(sync, (sync.shape[0] - 2) // 2, spins):  # noqa: F821
-        _k_gradient_transpose3(X2, inc_start, inc, ring, params2, x02, g, M, sums, v0, v1)  # noqa: F821
+        _k_gradient_runs3(X2, inc_start, inc, ring, params2, x02, g, M, sums, run_start, A, done,  # noqa: F821
+                          v0, v1)
         sync[2 + k] = 1
     fetch_add(sync, 1, 1)  # noqa: F821
 
@@ -863,12 +951,12 @@ def forward_then_to_verts(params, c, block_cell, shape, D, x0, comps, X,
     fetch_add(sync, 1, 1)  # noqa: F821
 
 
-_FUSED = ("forward_then_gradient_runs", "forward_then_gradient_transpose3", "forward_then_to_verts")
-_TEAMS = ("forward", "gradient_runs", "gradient_transpose3", "slot_incidence_fill", "to_verts")
+_FUSED = ("forward_then_gradient_runs", "forward_then_gradient_runs3", "forward_then_to_verts")
+_TEAMS = ("forward", "gradient_runs", "gradient_runs3", "slot_incidence_fill", "to_verts")
 _HELPERS = ("same_cell", "taps", "change_basis", "change_basis_runs", "runs_to_points", "block_powers",
-            "block_moments", "triangular_solve", "fan_gradient", "cell_polynomial")
+            "block_moments", "block_moments3", "triangular_solve", "fan_gradient", "cell_polynomial")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
-            "sum_runs": "njit", "gradient_runs": "njit",
+            "sum_runs": "njit", "gradient_runs": "njit", "gradient_runs3": "njit",
             "reduce_blocks": "njit", "reduce_runs": "njit", "householder": "njit_sums", "apply_q": "njit_sums",
             "condition": "njit", "triangular_solve": "njit",
             "vertex_incidence": "njit", "vertex_rings": "njit", "slot_incidence_start": "njit",

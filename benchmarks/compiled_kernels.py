@@ -13,7 +13,7 @@ An icosphere (163,842 vertices at 7 subdivisions, radius 0.45) in a B-spline lat
 - `verts`: the deformed vertices from the slots;
 - `solve`: a whole XYZ solve;
 - `gathers` and `moments` (compiled only): the gradient pass's two halves apart, the gradient
-  around every slot's faces and, per block, the moments of g s (the transposed entries are made from them in `reduce_blocks`, once per run);
+  around every slot's faces and, per block, the moments of g s (the transposed entries are made from them in `reduce_runs`, once per run);
 
 for the NumPy steps and the compiled ones, the bytes each pass reads and writes per slot, the
 time `compiled.load()` took, how far the two solves' vertices are apart (in lattice sizes), and

@@ -76,7 +76,7 @@ def run(subdivisions=7, rounds=7, max_threads=None):
 
 
 def passes(subdivisions=7, rounds=21, threads=None):
-    """{threads: {pass name: ms, "reduce_blocks", "rest", "solve"}}: the mean milliseconds of one
+    """{threads: {pass name: ms, "transpose", "rest", "solve"}}: the mean milliseconds of one
     XYZ solve's passes (summed over the solve's calls of each), by thread count (default 1, 2, 4,
     ... and every core)."""
     v, f, lat, P, topology = _problem(subdivisions)
@@ -100,7 +100,7 @@ def passes(subdivisions=7, rounds=21, threads=None):
     def timed_transpose(self, *args):
         t0 = time.perf_counter()
         got = transpose(self, *args)
-        spent["reduce_blocks"] += time.perf_counter() - t0
+        spent["transpose"] += time.perf_counter() - t0
         return got
     out, previous = {}, parallel.WORKERS
     try:

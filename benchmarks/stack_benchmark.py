@@ -301,24 +301,31 @@ def bind_figures(bpy, eh, status, handlers):
     return out
 
 
+def island_problem(module=vp):
+    """(verts, faces, lattice, points) of the islands' figure: 64 closed icospheres of 2,562
+    vertices each (163,968 vertices) in a 6x6x6 B-spline lattice squashed to half its height, made
+    with `module` (the package, or a copy of it under another name)."""
+    vs, fs, n = [], [], 0
+    rng = np.random.default_rng(5)
+    for k in range(64):
+        centre = ((k % 4 - 1.5) * 0.22, (k // 4 % 4 - 1.5) * 0.22, (k // 16 - 1.5) * 0.22)
+        v, f = module.icosphere(4, rng.uniform(0.05, 0.09), centre)
+        vs.append(v)
+        fs.append(f + n)
+        n += len(v)
+    lat = module.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
+    P = lat.rest_points.copy()
+    P[:, 2] *= 0.5
+    P[:, :2] *= 1.0 + 0.1 * np.cos(3.0 * P[:, 2:3])
+    return np.concatenate(vs), np.concatenate(fs), lat, P
+
+
 def island_figures(repeat=15):
     """The XYZ solve with Per-Island Volume (joint Gauss-Newton over every island) beside the
     single-volume solve, on 64 closed islands of 2,562 vertices each (163,968 vertices) in a
     6x6x6 B-spline lattice squashed to half its height. Core only (compiled kernels where loaded),
     the two solves alternately (this machine's speed drifts within seconds), medians of `repeat`."""
-    vs, fs, n = [], [], 0
-    rng = np.random.default_rng(5)
-    for k in range(64):
-        centre = ((k % 4 - 1.5) * 0.22, (k // 4 % 4 - 1.5) * 0.22, (k // 16 - 1.5) * 0.22)
-        v, f = vp.icosphere(4, rng.uniform(0.05, 0.09), centre)
-        vs.append(v)
-        fs.append(f + n)
-        n += len(v)
-    verts, tris = np.concatenate(vs), np.concatenate(fs)
-    lat = vp.Lattice(LATTICE, "BSPLINE", bounds=((-0.5,) * 3, (0.5,) * 3))
-    P = lat.rest_points.copy()
-    P[:, 2] *= 0.5
-    P[:, :2] *= 1.0 + 0.1 * np.cos(3.0 * P[:, 2:3])
+    verts, tris, lat, P = island_problem()
     b = vp.bind(lat, verts, tris, dtype=np.float32)
     out = {"vertices": len(verts), "islands": 64}
     cases = (("single_volume_ms", False), ("per_island_ms", True))

@@ -15,8 +15,9 @@ Wheels"); Blender installs only the wheels that match its Python. The committed 
 wheels, so building from a fresh clone (the README's install, every test) needs no download.
 
 Every wheel is pinned by version and checked against its SHA-256 in `release/wheels.lock`
-before it is packed. Downloads are kept in `.cache/wheels/` (git-ignored); the build folder is
-`build/package/` and the packages go to `dist/` (both git-ignored).
+before it is packed. Downloads are kept in `.cache/wheels/` (git-ignored); each build stages its
+source in a folder of its own under `build/package/` and the packages go to `dist/` (both
+git-ignored).
 
 The repository's index is written by Blender's own `extension server-generate` over every package
 in the output folder, so that folder holds exactly one version of VP-FFD, with one package per
@@ -26,12 +27,14 @@ depend on the order of the files. The any-platform package therefore lies in a s
 the index does not read.
 """
 import argparse
+import contextlib
 import hashlib
 import os
 import re
 import shutil
 import subprocess
 import sys
+import tempfile
 import tomllib
 import zipfile
 
@@ -106,6 +109,25 @@ def download(platform, python, dest=CACHE):
     return [os.path.join(target, n) for n in names]
 
 
+@contextlib.contextmanager
+def _only_one(folder):
+    """Hold an exclusive lock on `folder` (its `.lock` file) while inside: the test passes of
+    `./dev test` build packages side by side, and two downloads into one cache folder would write
+    the same files at once. Where `fcntl` is missing (Windows) nothing is locked."""
+    os.makedirs(folder, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    with open(os.path.join(folder, ".lock"), "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def checked_wheels(platform, python, lock):
     """Paths of the locked wheels for (platform, python), downloaded when missing, each checked
     against its SHA-256; PackageError on any mismatch."""
@@ -113,8 +135,9 @@ def checked_wheels(platform, python, lock):
     if not wanted:
         raise PackageError(f"release/wheels.lock has no wheels for {platform}, Python {python}")
     folder = os.path.join(CACHE, f"{platform}-{python}")
-    if not all(os.path.isfile(os.path.join(folder, name)) for name, _ in wanted):
-        download(platform, python)
+    with _only_one(folder):
+        if not all(os.path.isfile(os.path.join(folder, name)) for name, _ in wanted):
+            download(platform, python)
     paths = []
     for name, digest in wanted:
         path = os.path.join(folder, name)
@@ -218,14 +241,24 @@ def remove_stale(folder, manifest, any_platform=False):
     return gone
 
 
+def source_folder():
+    """A new folder under the build folder for one build's staged source, removed by the caller:
+    builds may run side by side (the test passes of `./dev test` do, in two lanes)."""
+    os.makedirs(BUILD, exist_ok=True)
+    return tempfile.mkdtemp(prefix="source-", dir=BUILD)
+
+
 def build_split(wheels, platforms, out, root=ROOT, blender_min=None):
     """One package per platform from `root` with `wheels` (none: NumPy only), for Blender from
     `blender_min` on (None: the manifest's), by Blender's builder with --split-platforms; their
     paths."""
-    folder = stage(wheels, platforms, os.path.join(BUILD, "source"), root, blender_min=blender_min)
-    rc, messages = eh.run_extension_cli(
-        "build", "--source-dir", folder, "--output-dir", out, "--split-platforms",
-        "--valid-tags", eh.blender_tags_file(), timeout=1800)
+    folder = stage(wheels, platforms, source_folder(), root, blender_min=blender_min)
+    try:
+        rc, messages = eh.run_extension_cli(
+            "build", "--source-dir", folder, "--output-dir", out, "--split-platforms",
+            "--valid-tags", eh.blender_tags_file(), timeout=1800)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
     if eh._failed(rc, messages):
         raise PackageError("Blender's builder refused the package:\n"
                            + "\n".join(f"{k}: {m}" for k, m in messages))
@@ -243,12 +276,15 @@ def build_numpy_before(platform, version, out, root=ROOT):
     """A NumPy-only package of `root` for `platform` and the Blender versions before `version`,
     where that platform's numba package starts; its path."""
     manifest = eh.read_manifest(root)
-    folder = stage([], [platform], os.path.join(BUILD, "source"), root, blender_max=version)
+    folder = stage([], [platform], source_folder(), root, blender_max=version)
     path = os.path.join(out, f"{manifest['id']}-{manifest['version']}-{platform.replace('-', '_')}"
                              f"-before-{version}.zip")
-    rc, messages = eh.run_extension_cli(
-        "build", "--source-dir", folder, "--output-filepath", path,
-        "--valid-tags", eh.blender_tags_file(), timeout=600)
+    try:
+        rc, messages = eh.run_extension_cli(
+            "build", "--source-dir", folder, "--output-filepath", path,
+            "--valid-tags", eh.blender_tags_file(), timeout=600)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
     if eh._failed(rc, messages) or not os.path.isfile(path):
         raise PackageError("Blender's builder refused the package:\n"
                            + "\n".join(f"{k}: {m}" for k, m in messages))

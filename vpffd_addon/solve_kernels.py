@@ -14,8 +14,9 @@ with no stored weights:
 - `gradient_transpose`: per slot, the gradient from the faces around it (a vertex-centred sum
   around a ring of neighbours where they close a fan: no scatter, no per-thread copies of g), and
   per block the two sums and the block's 64 moments of g s in the cell coordinates;
-  `reduce_blocks` adds the moments up in block order, a run of blocks in one cell at a time, and
-  turns each run's into the entries of (S B)^T g at the cell's control points by the same cubics.
+  `reduce_runs` adds the moments up in block order, a run of blocks in one cell and island at a
+  time, and turns each run's into the entries of (S B)^T g at the cell's control points by the
+  same cubics (`reduce_blocks`, which finds the runs itself, is its reference in the tests).
   So a result is the same whatever the number of threads. `gradient_runs` (`gradient_runs3` for
   three axes) is the pass with the runs' sums made in it where a part holds a run whole, and
   `reduce_runs` the transpose from them.
@@ -222,7 +223,7 @@ def block_powers(params, base, bs, pu, pv, pw):
 def block_moments(gs, bs, pu, pv, pw, h, M):
     # M (64,) = the block's moments of g s in its cell coordinates, M[(r * 4 + q) * 4 + p] =
     # sum_s g s w^r v^q u^p, g = gs (bs,), from the powers of `block_powers` (h (bs,) scratch):
-    # what the block gives (S B)^T g, turned into the control points' entries by `reduce_blocks`
+    # what the block gives (S B)^T g, turned into the control points' entries by `reduce_runs`
     # once per run of blocks in one cell (the change of basis is linear, so the moments of a run
     # add up first). Two powers of v at a time: a slot's powers of u are read once for both.
     for r in range(4):
@@ -265,7 +266,8 @@ def block_moments(gs, bs, pu, pv, pw, h, M):
 def block_moments3(gs, bs, pu, pv, pw, h, M0, M1, M2):
     # `block_moments` of three gradients at once, gs (3, bs) into M0, M1, M2 (64,) (h (3, bs)
     # scratch): every slot's powers are read once for the three, which halves the loads that
-    # bound the loop.
+    # bound the loop (so the three sums share one loop here rather than calling `block_moments`
+    # three times).
     for r in range(4):
         for s in range(bs):
             p = pw[r, s]
@@ -354,7 +356,7 @@ def gradient_transpose(xp, xq, inc_start, inc, ring, params, x0a, g, M, sums, b0
     # Blocks b0..b1-1: g (n_slots,) float64, the volume gradient along the axis that xp, xq
     # (n_slots,) complete (products in their precision, a product and a difference possibly fused
     # into one rounding, sums in float64; `volume.gradient_component` is the NumPy reference);
-    # per block M[bl] (64,) its moments of g s (`block_moments`, float64: `reduce_blocks` makes
+    # per block M[bl] (64,) its moments of g s (`block_moments`, float64: `reduce_runs` makes
     # (S B)^T g of them), sums[0, bl] = x0a . g (when x0a is not empty) and
     # sums[1, bl] = sum |s g|.
     n_blocks = M.shape[0]
@@ -506,6 +508,8 @@ def gradient_transpose3(X, inc_start, inc, ring, params, x0, g, M, sums, b0, b1)
 
 
 def reduce_blocks(M, block_cell, block_row, shape, c, alpha):
+    # The reference of `reduce_runs` (the start-up check and the tests compare them bit for bit):
+    # it finds the runs itself, where the solve takes the binding's.
     # alpha[row] += (S B)^T g from every block's moments M (n_blocks, 64) (`block_moments`): the
     # moments of a run of blocks in one cell and row added up in block order, then turned into
     # the entries of the cell's control points, T[k, j, i] = sum_pqr c[0, i, p] c[1, j, q]

@@ -165,6 +165,11 @@ MUTATIONS = {
         "    change_basis_runs(B, c, 1, C)\n    change_basis_runs(C, c, 2, B)",
         "    change_basis_runs(B, c, 1, A)\n    change_basis_runs(A, c, 2, B)",
         ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
+    "qr-pair-unfolded": (
+        "vpffd_addon/solve_kernels.py",
+        "            da2 = t2 * (da2 - da1 * c)\n            db2 = t2 * (db2 - db1 * c)",
+        "            da2 = t2 * da2\n            db2 = t2 * db2",
+        ["tests/test_core_compiled.py", "-k", "least_norm"], {}),
     "reembed-pads-unset": (
         "vpffd_addon/binding.py",
         "    b.x0[:, pads] = 0\n",

@@ -464,12 +464,14 @@ def _smoke_solve(kernels, dtype):
                     and np.isclose(sums[a, 0, 0], x0[a].astype(float) @ ref, rtol=0, atol=tol)
                     and np.isclose(sums[a, 1, 0], np.abs(params[3] * ref).sum(), rtol=0, atol=tol)):
                 raise RuntimeError("the compiled three-axis gradient pass differs from NumPy's sums")
-    A = np.vstack([np.cos(np.arange(12.0)), np.sin(np.arange(12.0)), np.arange(12.0) % 5]).reshape(3, 12)
-    M, tau, u = A.copy(), np.empty(3), np.zeros(12)
+    # (five rows: the QR's pairs of reflections, rows taken two at a time and one alone)
+    A = np.vstack([np.cos(np.arange(12.0)), np.sin(np.arange(12.0)), np.arange(12.0) % 5,
+                   np.cos(0.7 * np.arange(12.0)) ** 2, np.arange(12.0) % 3])
+    M, tau, u = A.copy(), np.empty(5), np.zeros(12)
     kernels["householder"](M, tau)
-    u[:3] = np.linalg.solve(np.tril(M[:, :3]), np.ones(3))
+    u[:5] = np.linalg.solve(np.tril(M[:, :5]), np.ones(5))
     kernels["apply_q"](M, tau, u)
-    if not np.allclose(u, np.linalg.lstsq(A, np.ones(3), rcond=None)[0], rtol=0, atol=1e-12):
+    if not np.allclose(u, np.linalg.lstsq(A, np.ones(5), rcond=None)[0], rtol=0, atol=1e-12):
         raise RuntimeError("the compiled QR's least-norm step differs from LAPACK's")
     mat = np.array([[0.3, -1.2, 0.7, 0.1], [2.0, 0.25, -0.5, -3.0], [0.1, 0.9, 1.7, 0.4], [0, 0, 0, 1.0]])
     for given in (A.T.copy(), np.ascontiguousarray(A.T, dtype=np.float32)):

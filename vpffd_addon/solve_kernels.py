@@ -611,61 +611,99 @@ def change_basis_runs(src, c, a, dst):
                     d[k] = (((0.0 + s0[k] * w0) + s1[k] * w1) + s2[k] * w2) + s3[k] * w3
 
 
+def reflection(M, tau, j):
+    # Householder reflection j from row j of M (k, n), right of column j, in place: beta on the
+    # diagonal, the vector's entries after its first (1, implied) right of it, its factor in tau[j]
+    # (0 where the row is already 0 there).
+    v = M[j, j:]
+    m = v.size
+    s = 0.0
+    for i in range(m):
+        s += v[i] * v[i]
+    alpha = v[0]
+    norm = np.sqrt(s)
+    if norm == 0.0:
+        tau[j] = 0.0
+        return
+    beta = -norm if alpha >= 0.0 else norm
+    v0 = alpha - beta
+    for i in range(1, m):
+        v[i] /= v0
+    tau[j] = (beta - alpha) / beta
+    v[0] = beta
+
+
 def householder(M, tau):
     # The QR factorisation A = Q R of A = M^T (n, k), n >= k, by Householder reflections, in place
     # on M (k, n) (row j of M is column j of A, so every loop runs along a row): R^T is then the
     # lower triangle of M[:, :k] and row j right of column j holds reflection j's vector (its
     # first entry 1 implied), tau (k,) their factors. (The joint steps' rows, reduced to k x k
-    # without LAPACK: see `compiled.min_norm`.) Every loop runs over a slice from a constant
-    # start: numba cannot tell that an index from a start known only at run time is not negative,
-    # and the check for it keeps LLVM from vectorising the loop (3.5 times slower); each
-    # reflection goes over two rows at a time, which share its loads (docs/performance.md,
-    # "Per-Island Volume").
+    # without LAPACK: see `compiled.min_norm`.) The rows after a pair of reflections j, j + 1 take
+    # both in one pass, with H_j's change to row c folded into H_(j+1)'s factor through
+    # v_j . v_(j+1), and two rows at a time, which share the two vectors' loads: the matrix goes
+    # through the cache half as often as one reflection at a time (docs/performance.md,
+    # "Per-Island Volume"). Every loop runs over a slice from a constant start: numba cannot tell
+    # that an index from a start known only at run time is not negative, and the check for it
+    # keeps LLVM from vectorising the loop (3.5 times slower).
     k, n = M.shape
-    for j in range(k):
-        v = M[j, j:]
+    j = 0
+    while j < k:
+        reflection(M, tau, j)
+        if j + 1 == k:
+            break
+        t1 = tau[j]
+        v = M[j, j + 1:]            # H_j's vector from column j + 1 (1 at column j, implied)
         m = v.size
-        s = 0.0
+        r = M[j + 1, j + 1:]        # H_j on row j + 1, then H_(j+1) from it
+        d = M[j + 1, j]
         for i in range(m):
-            s += v[i] * v[i]
-        alpha = v[0]
-        norm = np.sqrt(s)
-        if norm == 0.0:
-            tau[j] = 0.0
-            continue
-        beta = -norm if alpha >= 0.0 else norm
-        v0 = alpha - beta
+            d += v[i] * r[i]
+        d *= t1
+        M[j + 1, j] -= d
+        for i in range(m):
+            r[i] -= d * v[i]
+        reflection(M, tau, j + 1)
+        t2 = tau[j + 1]
+        w = M[j + 1, j + 1:]        # H_(j+1)'s vector from column j + 1 (w[0]: 1, implied)
+        c = v[0]                    # v_j . v_(j+1)
         for i in range(1, m):
-            v[i] /= v0
-        t = (beta - alpha) / beta
-        tau[j] = t
-        v[0] = beta
-        c = j + 1
-        while c + 1 < k:
-            ra = M[c, j:]
-            rb = M[c + 1, j:]
-            da = ra[0]
-            db = rb[0]
+            c += v[i] * w[i]
+        # Row c: d1 = t1 (v_j . row), row -= d1 v_j; d2 = t2 (v_(j+1) . row) after that change,
+        # = t2 (v_(j+1) . row - d1 c); row -= d2 v_(j+1).
+        row = j + 2
+        while row < k:
+            pair = row + 1 < k
+            b = row + 1 if pair else row
+            ra = M[row, j + 1:]
+            rb = M[b, j + 1:]
+            a1 = ra[0]
+            b1 = rb[0]
+            da1 = M[row, j] + v[0] * a1
+            db1 = M[b, j] + v[0] * b1
+            da2 = a1
+            db2 = b1
             for i in range(1, m):
-                da += v[i] * ra[i]
-                db += v[i] * rb[i]
-            da *= t
-            db *= t
-            ra[0] -= da
-            rb[0] -= db
+                x = ra[i]
+                y = rb[i]
+                da1 += v[i] * x
+                da2 += w[i] * x
+                db1 += v[i] * y
+                db2 += w[i] * y
+            da1 *= t1
+            db1 *= t1
+            da2 = t2 * (da2 - da1 * c)
+            db2 = t2 * (db2 - db1 * c)
+            M[row, j] -= da1
+            ra[0] = a1 - da1 * v[0] - da2
             for i in range(1, m):
-                ra[i] -= da * v[i]
-                rb[i] -= db * v[i]
-            c += 2
-        if c < k:
-            rc = M[c, j:]
-            d = rc[0]
-            for i in range(1, m):
-                d += v[i] * rc[i]
-            d *= t
-            rc[0] -= d
-            for i in range(1, m):
-                rc[i] -= d * v[i]
+                ra[i] -= da1 * v[i] + da2 * w[i]
+            if pair:
+                M[b, j] -= db1
+                rb[0] = b1 - db1 * v[0] - db2
+                for i in range(1, m):
+                    rb[i] -= db1 * v[i] + db2 * w[i]
+            row += 2
+        j += 2
 
 
 def apply_q(M, tau, x):
@@ -705,8 +743,12 @@ def condition(L, rounds):
     # An estimate of L's condition number sigma_max / sigma_min (L (k, k) lower triangular, no zero
     # on its diagonal): power iterations on L^T L and on (L^T L)^-1 from a fixed start, `rounds`
     # each (each round multiplies a wrong direction's share by the square of a singular value
-    # ratio, so a handful settle both to a few percent).
+    # ratio, so a handful settle both to a few percent). The products and the substitutions go
+    # column by column, adding a multiple of a contiguous row of L or of its transpose to the
+    # result: no sum waits on the last, and the loops vectorise (a sum per entry, along a column
+    # of L, did neither: twice the time at k = 64).
     k = L.shape[0]
+    LT = np.ascontiguousarray(L.T)
     x = np.empty(k)
     y = np.empty(k)
     z = np.empty(k)
@@ -722,19 +764,35 @@ def condition(L, rounds):
             for i in range(k):
                 x[i] /= n
             if which == 0:              # y = L x, z = L^T y
-                for i in range(k):
-                    s = 0.0
-                    for j in range(i + 1):
-                        s += L[i, j] * x[j]
-                    y[i] = s
-                for i in range(k):
-                    s = 0.0
-                    for j in range(i, k):
-                        s += L[j, i] * y[j]
-                    z[i] = s
-            else:                       # y = L^-T x, z = L^-1 y
-                triangular_solve(L, x, y, True)
-                triangular_solve(L, y, z, False)
+                y[:] = 0.0
+                z[:] = 0.0
+                for j in range(k):
+                    col = LT[j, j:]
+                    ys = y[j:]
+                    xj = x[j]
+                    for i in range(col.size):
+                        ys[i] += col[i] * xj
+                for j in range(k):
+                    row = L[j, :j + 1]
+                    yj = y[j]
+                    for i in range(row.size):
+                        z[i] += row[i] * yj
+            else:                       # y = L^-T x (backwards), z = L^-1 y (forwards)
+                y[:] = x
+                for j in range(k - 1, -1, -1):
+                    y[j] /= L[j, j]
+                    row = L[j, :j]
+                    yj = y[j]
+                    for i in range(row.size):
+                        y[i] -= row[i] * yj
+                z[:] = y
+                for j in range(k):
+                    z[j] /= L[j, j]
+                    col = LT[j, j + 1:]
+                    zs = z[j + 1:]
+                    zj = z[j]
+                    for i in range(col.size):
+                        zs[i] -= col[i] * zj
             g = 0.0
             for i in range(k):
                 g += z[i] * z[i]
@@ -958,7 +1016,8 @@ def forward_then_to_verts(params, c, block_cell, shape, D, x0, comps, X,
 _FUSED = ("forward_then_gradient_runs", "forward_then_gradient_runs3", "forward_then_to_verts")
 _TEAMS = ("forward", "gradient_runs", "gradient_runs3", "slot_incidence_fill", "to_verts")
 _HELPERS = ("same_cell", "taps", "change_basis", "change_basis_runs", "runs_to_points", "block_powers",
-            "block_moments", "block_moments3", "triangular_solve", "fan_gradient", "cell_polynomial")
+            "block_moments", "block_moments3", "triangular_solve", "fan_gradient", "cell_polynomial",
+            "reflection")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
             "sum_runs": "njit", "gradient_runs": "njit", "gradient_runs3": "njit",
             "reduce_blocks": "njit", "reduce_runs": "njit", "householder": "njit_sums", "apply_q": "njit_sums",

@@ -11,8 +11,8 @@ def check_verts(verts, name="verts"):
         raise ValueError(f"{name} must have shape (V, 3), got {v.shape}")
     if len(v) == 0:
         raise ValueError(f"{name} is empty")
-    bad = ~np.isfinite(v).all(1)
-    if bad.any():
+    if not np.isfinite(v).all():    # (per vertex only then: a reduction along rows of 3 is slow)
+        bad = ~np.isfinite(v).all(1)
         raise ValueError(f"{name} has non-finite coordinates at {int(bad.sum())} vertices "
                          f"(first: index {int(np.argmax(bad))})")
     return v

@@ -652,18 +652,11 @@ def householder(M, tau):
         if j + 1 == k:
             break
         t1 = tau[j]
-        v = M[j, j + 1:]            # H_j's vector from column j + 1 (1 at column j, implied)
-        m = v.size
-        r = M[j + 1, j + 1:]        # H_j on row j + 1, then H_(j+1) from it
-        d = M[j + 1, j]
-        for i in range(m):
-            d += v[i] * r[i]
-        d *= t1
-        M[j + 1, j] -= d
-        for i in range(m):
-            r[i] -= d * v[i]
+        reflect(M[j, j:], t1, M[j + 1, j:])     # H_j on row j + 1, then H_(j+1) from it
         reflection(M, tau, j + 1)
         t2 = tau[j + 1]
+        v = M[j, j + 1:]            # H_j's vector from column j + 1 (1 at column j, implied)
+        m = v.size
         w = M[j + 1, j + 1:]        # H_(j+1)'s vector from column j + 1 (w[0]: 1, implied)
         c = v[0]                    # v_j . v_(j+1)
         for i in range(1, m):
@@ -706,24 +699,30 @@ def householder(M, tau):
         j += 2
 
 
+def reflect(v, t, y):
+    # y <- H y for the reflection of vector v (its first entry 1, implied: v[0] holds something
+    # else) and factor t, v and y (m,) from the same column on.
+    d = y[0]
+    for i in range(1, v.size):
+        d += v[i] * y[i]
+    d *= t
+    y[0] -= d
+    for i in range(1, v.size):
+        y[i] -= d * v[i]
+
+
 def apply_q(M, tau, x):
     # x (n,) <- Q x with the reflections `householder` left in M, tau (applied last to first;
     # slices from constant starts, as there).
     k, n = M.shape
     for j in range(k - 1, -1, -1):
-        v = M[j, j:]
-        y = x[j:]
-        d = y[0]
-        for i in range(1, v.size):
-            d += v[i] * y[i]
-        d *= tau[j]
-        y[0] -= d
-        for i in range(1, v.size):
-            y[i] -= d * v[i]
+        reflect(M[j, j:], tau[j], x[j:])
 
 
 def triangular_solve(L, b, x, transposed):
-    # x = L^-1 b (or L^-T b when `transposed`) for L (k, k) lower triangular.
+    # x = L^-1 b (or L^-T b when `transposed`) for L (k, k) lower triangular. L^-T goes backwards
+    # a column of L^T at a time, each a contiguous row of L (a multiple of it taken from the
+    # rest: the loop vectorises, where a sum along a column of L would not).
     k = L.shape[0]
     if not transposed:
         for i in range(k):
@@ -732,11 +731,13 @@ def triangular_solve(L, b, x, transposed):
                 s -= L[i, j] * x[j]
             x[i] = s / L[i, i]
     else:
-        for i in range(k - 1, -1, -1):
-            s = b[i]
-            for j in range(i + 1, k):
-                s -= L[j, i] * x[j]
-            x[i] = s / L[i, i]
+        x[:] = b
+        for j in range(k - 1, -1, -1):
+            x[j] /= L[j, j]
+            row = L[j, :j]
+            xj = x[j]
+            for i in range(row.size):
+                x[i] -= row[i] * xj
 
 
 def condition(L, rounds):
@@ -777,14 +778,8 @@ def condition(L, rounds):
                     yj = y[j]
                     for i in range(row.size):
                         z[i] += row[i] * yj
-            else:                       # y = L^-T x (backwards), z = L^-1 y (forwards)
-                y[:] = x
-                for j in range(k - 1, -1, -1):
-                    y[j] /= L[j, j]
-                    row = L[j, :j]
-                    yj = y[j]
-                    for i in range(row.size):
-                        y[i] -= row[i] * yj
+            else:                       # y = L^-T x, z = L^-1 y (forwards, by the columns of L)
+                triangular_solve(L, x, y, True)
                 z[:] = y
                 for j in range(k):
                     z[j] /= L[j, j]
@@ -1017,7 +1012,7 @@ _FUSED = ("forward_then_gradient_runs", "forward_then_gradient_runs3", "forward_
 _TEAMS = ("forward", "gradient_runs", "gradient_runs3", "slot_incidence_fill", "to_verts")
 _HELPERS = ("same_cell", "taps", "change_basis", "change_basis_runs", "runs_to_points", "block_powers",
             "block_moments", "block_moments3", "triangular_solve", "fan_gradient", "cell_polynomial",
-            "reflection")
+            "reflection", "reflect")
 _KERNELS = {"forward": "njit_sums", "gradient_transpose": "njit_sums", "gradient_transpose3": "njit_sums",
             "sum_runs": "njit", "gradient_runs": "njit", "gradient_runs3": "njit",
             "reduce_blocks": "njit", "reduce_runs": "njit", "householder": "njit_sums", "apply_q": "njit_sums",

@@ -241,24 +241,28 @@ def remove_stale(folder, manifest, any_platform=False):
     return gone
 
 
+@contextlib.contextmanager
 def source_folder():
-    """A new folder under the build folder for one build's staged source, removed by the caller:
-    builds may run side by side (the test passes of `./dev test` do, in two lanes)."""
+    """A new folder under the build folder for one build's staged source, removed on leaving
+    (the build done or failed, the staging too): builds may run side by side (the test passes of
+    `./dev test` do, in two lanes)."""
     os.makedirs(BUILD, exist_ok=True)
-    return tempfile.mkdtemp(prefix="source-", dir=BUILD)
+    folder = tempfile.mkdtemp(prefix="source-", dir=BUILD)
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def build_split(wheels, platforms, out, root=ROOT, blender_min=None):
     """One package per platform from `root` with `wheels` (none: NumPy only), for Blender from
     `blender_min` on (None: the manifest's), by Blender's builder with --split-platforms; their
     paths."""
-    folder = stage(wheels, platforms, source_folder(), root, blender_min=blender_min)
-    try:
+    with source_folder() as folder:
+        stage(wheels, platforms, folder, root, blender_min=blender_min)
         rc, messages = eh.run_extension_cli(
             "build", "--source-dir", folder, "--output-dir", out, "--split-platforms",
             "--valid-tags", eh.blender_tags_file(), timeout=1800)
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
     if eh._failed(rc, messages):
         raise PackageError("Blender's builder refused the package:\n"
                            + "\n".join(f"{k}: {m}" for k, m in messages))
@@ -276,15 +280,13 @@ def build_numpy_before(platform, version, out, root=ROOT):
     """A NumPy-only package of `root` for `platform` and the Blender versions before `version`,
     where that platform's numba package starts; its path."""
     manifest = eh.read_manifest(root)
-    folder = stage([], [platform], source_folder(), root, blender_max=version)
     path = os.path.join(out, f"{manifest['id']}-{manifest['version']}-{platform.replace('-', '_')}"
                              f"-before-{version}.zip")
-    try:
+    with source_folder() as folder:
+        stage([], [platform], folder, root, blender_max=version)
         rc, messages = eh.run_extension_cli(
             "build", "--source-dir", folder, "--output-filepath", path,
             "--valid-tags", eh.blender_tags_file(), timeout=600)
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
     if eh._failed(rc, messages) or not os.path.isfile(path):
         raise PackageError("Blender's builder refused the package:\n"
                            + "\n".join(f"{k}: {m}" for k, m in messages))

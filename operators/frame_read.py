@@ -72,6 +72,7 @@ def read(d, state, depsgraph, helpers_taken):
     # evaluated object only: a render's depsgraph does not write them back to the original.
     state.settings = deformers.evaluated_settings(d, ob_eval)
     return _frame(d, ob_eval, state, lat_ob, depsgraph, tap=tap, helper=helper,
+                  saved=solver_helper.saved_on(obj, mod, helper),
                   stale_weights=stale_weights, may_write=not rendering)
 
 
@@ -97,14 +98,15 @@ def _control(d, state, depsgraph):
     return lat_ob
 
 
-def _frame(d, ob_eval, state, lat_ob, depsgraph, *, tap, helper, stale_weights, may_write):
+def _frame(d, ob_eval, state, lat_ob, depsgraph, *, tap, helper, saved, stale_weights, may_write):
     """The `Frame` of deformer `d` for the tap `tap` ((V, 3) positions, (V,) weights, triangles
-    or None), with the settings of this evaluation (`state.settings`)."""
+    or None), with the settings of this evaluation (`state.settings`); `saved`: the object that
+    holds what Bind saved (`solver_helper.saved_on`)."""
     obj, mod = d.obj, d.mod
     s = state.settings
     X, weights, tapped_tris = tap
     lattice, _, points, lattice_weights, cage_options, M_lat = control_inputs(
-        obj, state, s, lat_ob, depsgraph, helper)
+        obj, state, s, lat_ob, depsgraph, saved)
     M_ob = meshio.matrix(ob_eval.matrix_world)
     for what, M in (("lattice", M_lat), ("mesh", M_ob)):
         if not abs(linalg3.det3(M[:3, :3])) > 1e-30:
@@ -116,7 +118,7 @@ def _frame(d, ob_eval, state, lat_ob, depsgraph, *, tap, helper, stale_weights, 
     editing = obj.mode == "EDIT"
     tris, faces_from = _faces(state, obj, ob_eval, len(X), tapped_tris, mod, may_write, editing)
     warnings = []
-    pins = _pins(s, obj, helper)
+    pins = _pins(s, obj, saved)
     if len(pins) and faces_from != "mesh" and len(X) != len(obj.data.vertices):
         warnings.append("pins are off: the vertex count that reaches VP-FFD is not the mesh's")
         pins = pins[:0]
@@ -128,7 +130,7 @@ def _frame(d, ob_eval, state, lat_ob, depsgraph, *, tap, helper, stale_weights, 
                         "VP-FFD are not known yet; they are passed along from the next "
                         "evaluation on")
         correct = False
-    target_volumes = _bind_target(s, helper, warnings)
+    target_volumes = _bind_target(s, saved, warnings)
     outside = s.outside if isinstance(lattice, vp.Lattice) else "FOLLOW"   # a cage has its own rule
     computed = dict(
         positions=X, tris=tris, lattice=lattice, points=points, matrix=L, weights=weights,

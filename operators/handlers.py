@@ -5,7 +5,7 @@ import logging
 import bpy
 from bpy.app.handlers import persistent
 
-from . import deformers, modifier
+from . import deformers, modifier, tracked_objects
 from .bound import forget, invalidate, relink_after_undo
 from .update import bound_objects, update_scene
 
@@ -45,6 +45,7 @@ def on_load(*_args) -> None:
     """A loaded file brings bound objects but no cached bindings: drop stale ones, lock the
     interface during renders (handlers change data), and solve the current frame."""
     forget()
+    tracked_objects.forget()
     try:
         for scene in bpy.data.scenes:
             for ob in bound_objects(scene):
@@ -71,6 +72,7 @@ def on_undo(*_args) -> None:
     restored inputs are the ones it was built from (no stall after an undo). A lattice that undo
     brings back after Delete is linked again (`bound.relink_after_undo`)."""
     invalidate()
+    tracked_objects.forget()
     try:
         for scene in bpy.data.scenes:
             for ob in bound_objects(scene):

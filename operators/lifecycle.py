@@ -100,6 +100,7 @@ def bind(target, depsgraph):
     modifier.prepare(obj, mod, s)
     # What Bind saves goes on the solver helper, local data even when the mesh is linked.
     helper = solver_helper.helper(obj, mod)
+    helper[solver_helper.BOUND_HERE] = True     # a library override's own Bind (`saved_on`)
     for key, value in ((PIN_PROPERTY, np.flatnonzero(pins > 0).tolist() if pins.any() else None),
                        (CAGE_REST_PROPERTY, None if cage_rest is None else cage_rest.ravel().tolist()),
                        (BIND_VOLUME_PROPERTY, None)):   # captured below, from this Bind's input

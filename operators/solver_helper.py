@@ -10,6 +10,16 @@ from .node_group import SOLVER_INPUT, get_input, set_input
 HELPER_TAG = "vpffd_solver"  # custom property of helper objects: the name of their mesh object
 
 
+BOUND_HERE = "vpffd_bound_here"  # on a library override's own helper: Bind ran in this file
+
+
+def writable(ob):
+    """Whether offsets written into helper `ob` reach Blender: linked data is read-only (its
+    writes are dropped without an error), so a helper linked from a library is not."""
+    return ob is not None and ob.library is None and ob.is_editable \
+        and ob.data is not None and ob.data.library is None and ob.data.is_editable
+
+
 def _new_helper(obj):
     mesh = bpy.data.meshes.new(f".VP-FFD solver {obj.name}")
     ob = bpy.data.objects.new(f".VP-FFD solver {obj.name}", mesh)
@@ -53,6 +63,15 @@ def helper(obj, mod, exclusive_of=()):
     if mod is None:
         return None
     ob = get_input(mod, SOLVER_INPUT)
+    if ob is not None and ob.get(HELPER_TAG) is not None and not writable(ob):
+        # A library override of an object bound in its library: the modifier still names the
+        # library's helper, which cannot be written here. The override gets a helper of its own
+        # (saved with the override); what Bind saved stays readable on the library's (`saved_on`).
+        if obj.library is not None or not obj.is_editable:
+            return ob                   # linked itself: nothing here can be changed (update.py)
+        ob = _new_helper(obj)
+        set_input(mod, SOLVER_INPUT, ob)
+        return ob
     if ob is None or ob.type != "MESH" or ob.get(HELPER_TAG) is None or ob in exclusive_of:
         shared = ob if ob is not None and ob.get(HELPER_TAG) is not None else None
         ob = _new_helper(obj)
@@ -64,8 +83,34 @@ def helper(obj, mod, exclusive_of=()):
     return ob
 
 
+def saved_on(obj, mod, helper_ob):
+    """The object that holds what Bind saved for `obj`'s VP-FFD modifier `mod`: its helper
+    `helper_ob`, or, for a library override whose helper was made here (`helper`) and that was
+    not bound here, the helper of the library's own object, so that a rig re-bound in its file
+    is followed by every shot on reload."""
+    if helper_ob is None or helper_ob.get(BOUND_HERE) or obj.override_library is None:
+        return helper_ob
+    reference = obj.override_library.reference
+    if reference is None or reference.library is None or not writable(helper_ob):
+        return helper_ob
+    same = reference.modifiers.get(mod.name)
+    if same is None or same.type != "NODES" or same.node_group is None:
+        return helper_ob
+    theirs = get_input(same, SOLVER_INPUT)
+    if theirs is None or theirs == helper_ob or theirs.get(HELPER_TAG) is None:
+        return helper_ob
+    return theirs
+
+
 def write_offsets(helper_ob, offsets):
-    """Store (V, 3) float32 offsets as the helper's vertex positions (resized when V changed)."""
+    """Store (V, 3) float32 offsets as the helper's vertex positions (resized when V changed).
+    ValueError for a helper that cannot be written (linked from a library): the panel must not
+    describe a shape that Blender does not show."""
+    if not writable(helper_ob):
+        lib = helper_ob.library or helper_ob.data.library
+        raise ValueError(f"the solver helper '{helper_ob.name}' is linked from "
+                         f"{lib.filepath if lib else 'a library'} and cannot be written here: "
+                         "VP-FFD's offsets would not reach the mesh")
     mesh = helper_ob.data
     values = np.ascontiguousarray(offsets, dtype=np.float32).reshape(-1, 3)
     if len(mesh.vertices) != len(values):

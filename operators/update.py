@@ -6,13 +6,12 @@ import time
 
 import numpy as np
 
-from . import compiled_backend, deformers, node_group
+from . import compiled_backend, deformers, node_group, tracked_objects
 from .bound import Bound, states
 from .frame_read import read
 from .publish import count_folds, encloses_nothing, publish, zero_offsets
 from .release import release
 from .status import deformer_of, set_status, status
-
 
 def update(target, depsgraph, force=False):
     """Solve the current frame for bound deformer `target` (a `deformers.Deformer`, or a mesh
@@ -79,8 +78,10 @@ def update_object(obj, depsgraph, force=False, helpers_taken=None):
 
 
 def update_scene(scene, depsgraph):
+    """Update every bound object of `scene`, and those linked from a library that `depsgraph`
+    shows through collection instances (`tracked_objects`)."""
     taken = set()   # each modifier gets a solver helper of its own (duplicates share one)
-    for ob in bound_objects(scene):
+    for ob in tracked_objects.bound_objects(scene, depsgraph):
         update_object(ob, depsgraph, False, taken)
 
 
@@ -118,7 +119,24 @@ def request_update(obj):
 
 
 def bound_objects(scene):
+    """The bound mesh objects of `scene` (what load and undo prepare)."""
     return [ob for ob in scene.objects if ob.type == "MESH" and deformers.is_bound(ob)]
+
+
+_HIDDEN = "the object is hidden: VP-FFD solves again when it is shown"
+
+def _linked_without_override(d):
+    """Deformer `d`'s object is linked from a library with no library override (a collection
+    instance of a rig, say): linked data is read-only, so nothing VP-FFD solves can reach it, and
+    Blender shows what its solver helper held when the library was saved. Said in the panel and,
+    once, in the console (`set_status`); nothing is written."""
+    obj = d.obj
+    path = obj.library.filepath if obj.library is not None else ""
+    why = (f"'{obj.name}' is linked from {path} without a library override: linked data is "
+           "read-only, so VP-FFD cannot write its shape and Blender shows the shape saved with "
+           "the library on every frame. Make a library override of it, or bake a point cache in "
+           "the library (Bake to Point Cache), which Blender's Mesh Cache modifier plays everywhere")
+    set_status(d, error=why)
 
 
 def _evaluated_here(obj, depsgraph):
@@ -156,6 +174,12 @@ def _slot_to_solve(d, depsgraph, force):
         return None
     obj, mod = d.obj, d.mod
     rendering = depsgraph.mode == "RENDER"
+    if obj.library is not None:
+        # Linked, no override. A rig baked in its library plays its cache there (its VP-FFD
+        # modifiers switched off): nothing to say.
+        if mod is not None and (mod.show_render if rendering else mod.show_viewport):
+            _linked_without_override(d)
+        return None
     if mod is None:
         if not rendering:
             # Removed (X on the modifier) or applied (Ctrl+A): as with any modifier, the object
@@ -173,7 +197,7 @@ def _slot_to_solve(d, depsgraph, force):
         # evaluate it, so nothing reaches the slot. Keep the offsets shown last and solve again
         # when it is shown: it comes back as it was, with no error.
         if not rendering:
-            _pause(d, paused="the object is hidden: VP-FFD solves again when it is shown")
+            _pause(d, paused=_HIDDEN)
         return None
     return mod
 

@@ -165,6 +165,16 @@ MUTATIONS = {
         "    change_basis_runs(B, c, 1, C)\n    change_basis_runs(C, c, 2, B)",
         "    change_basis_runs(B, c, 1, A)\n    change_basis_runs(A, c, 2, B)",
         ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
+    "override-writes-linked-helper": (
+        "operators/solver_helper.py",
+        "        if obj.library is not None or not obj.is_editable:\n",
+        "        if True:\n",
+        ["tests/test_linked_blender.py", "-k", "overrides_it"], {}),
+    "instances-skipped": (
+        "operators/tracked_objects.py",
+        "        if ob.library is not None and _bound(ob)",
+        "        if False and _bound(ob)",
+        ["tests/test_linked_blender.py", "-k", "unbaked"], {}),
     "qr-pair-unfolded": (
         "vpffd_addon/solve_kernels.py",
         "            da2 = t2 * (da2 - da1 * c)\n            db2 = t2 * (db2 - db1 * c)",

@@ -259,7 +259,7 @@ for f in (1, 10, 20):
     # every instance of the body, in world space, against the same instance of the twin
     shapes = []
     for inst in dg.object_instances:
-        if inst.is_instance and inst.object.original in (body, twin):
+        if inst.is_instance and inst.object.type == "MESH" and inst.object.original in (body, twin):
             me = inst.object.to_mesh()
             co = np.empty(len(me.vertices) * 3, np.float32)
             me.vertices.foreach_get("co", co)

@@ -63,17 +63,15 @@ def helper(obj, mod, exclusive_of=()):
     if mod is None:
         return None
     ob = get_input(mod, SOLVER_INPUT)
-    if ob is not None and ob.get(HELPER_TAG) is not None and not writable(ob):
-        # A library override of an object bound in its library: the modifier still names the
-        # library's helper, which cannot be written here. The override gets a helper of its own
-        # (saved with the override); what Bind saved stays readable on the library's (`saved_on`).
-        if obj.library is not None or not obj.is_editable:
-            return ob                   # linked itself: nothing here can be changed (update.py)
-        ob = _new_helper(obj)
-        set_input(mod, SOLVER_INPUT, ob)
-        return ob
-    if ob is None or ob.type != "MESH" or ob.get(HELPER_TAG) is None or ob in exclusive_of:
-        shared = ob if ob is not None and ob.get(HELPER_TAG) is not None else None
+    tagged = ob is not None and ob.get(HELPER_TAG) is not None
+    # A helper linked from a library (a library override of an object bound in its library)
+    # cannot be written here: the override gets one of its own, saved with it, and what Bind
+    # saved stays readable on the library's (`saved_on`), so nothing of it is copied.
+    linked = tagged and not writable(ob)
+    if linked and (obj.library is not None or not obj.is_editable):
+        return ob                       # linked itself: nothing here can be changed (update.py)
+    if not tagged or linked or ob.type != "MESH" or ob in exclusive_of:
+        shared = ob if tagged and not linked else None
         ob = _new_helper(obj)
         if shared is not None:          # a duplicate keeps what was saved at Bind (pins, cage)
             for key in shared.keys():

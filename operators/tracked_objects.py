@@ -60,10 +60,15 @@ def _bound(ob):
         return False
 
 
+def in_scene(scene):
+    """The bound mesh objects of `scene` (what load and undo prepare)."""
+    return [ob for ob in scene.objects if _bound(ob)]
+
+
 def bound_objects(scene, depsgraph):
     """The bound mesh objects of `scene`, then those linked from a library (no override) that
     `depsgraph` evaluates through a collection instance."""
-    found = [ob for ob in scene.objects if ob.type == "MESH" and deformers.is_bound(ob)]
+    found = in_scene(scene)
     for ob in candidates():
         if ob.library is not None and _bound(ob) and ob.evaluated_get(depsgraph).is_evaluated \
                 and ob not in found:

@@ -13,6 +13,7 @@ from .publish import count_folds, encloses_nothing, publish, zero_offsets
 from .release import release
 from .status import deformer_of, set_status, status
 
+
 def update(target, depsgraph, force=False):
     """Solve the current frame for bound deformer `target` (a `deformers.Deformer`, or a mesh
     object for its first deformer) and write its offsets. Never raises: problems go to the panel
@@ -118,12 +119,8 @@ def request_update(obj):
 # ---------------------------------------------------------------------------------------- bind
 
 
-def bound_objects(scene):
-    """The bound mesh objects of `scene` (what load and undo prepare)."""
-    return [ob for ob in scene.objects if ob.type == "MESH" and deformers.is_bound(ob)]
+bound_objects = tracked_objects.in_scene
 
-
-_HIDDEN = "the object is hidden: VP-FFD solves again when it is shown"
 
 def _linked_without_override(d):
     """Deformer `d`'s object is linked from a library with no library override (a collection
@@ -131,8 +128,7 @@ def _linked_without_override(d):
     Blender shows what its solver helper held when the library was saved. Said in the panel and,
     once, in the console (`set_status`); nothing is written."""
     obj = d.obj
-    path = obj.library.filepath if obj.library is not None else ""
-    why = (f"'{obj.name}' is linked from {path} without a library override: linked data is "
+    why = (f"'{obj.name}' is linked from {obj.library.filepath} without a library override: linked data is "
            "read-only, so VP-FFD cannot write its shape and Blender shows the shape saved with "
            "the library on every frame. Make a library override of it, or bake a point cache in "
            "the library (Bake to Point Cache), which Blender's Mesh Cache modifier plays everywhere")
@@ -197,7 +193,7 @@ def _slot_to_solve(d, depsgraph, force):
         # evaluate it, so nothing reaches the slot. Keep the offsets shown last and solve again
         # when it is shown: it comes back as it was, with no error.
         if not rendering:
-            _pause(d, paused=_HIDDEN)
+            _pause(d, paused="the object is hidden: VP-FFD solves again when it is shown")
         return None
     return mod
 

@@ -167,8 +167,8 @@ MUTATIONS = {
         ["tests/test_core_compiled.py", "-k", "runs_summed"], {}),
     "override-writes-linked-helper": (
         "operators/solver_helper.py",
-        "        if obj.library is not None or not obj.is_editable:\n",
-        "        if True:\n",
+        "    linked = tagged and not writable(ob)\n",
+        "    linked = False\n",
         ["tests/test_linked_blender.py", "-k", "overrides_it"], {}),
     "instances-skipped": (
         "operators/tracked_objects.py",

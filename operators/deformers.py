@@ -6,7 +6,7 @@ use); every further one has an entry in `Object.vpffd_extra`. Each names its mod
 modifier's `persistent_uid` (Blender keeps it when the stack is reordered, the modifier renamed
 or the object duplicated). Settings whose `modifier_uid` is still 0 (files of earlier versions,
 which allowed one VP-FFD modifier) belong to the first VP-FFD modifier that no other settings
-name. Nothing here writes, except `claim` and `drop`."""
+name. Nothing here writes, except `claim`, `drop` and `reference_settings`."""
 import dataclasses
 
 from . import modifier, node_group
@@ -137,9 +137,25 @@ def named(obj, name=""):
     return Deformer(obj, mod, s)
 
 
+def reference_settings(obj):
+    """Give the linked object that library override `obj` overrides its VP-FFD settings, in memory
+    (reading `Object.vpffd` makes them; nothing is written to the library). Blender keeps an
+    override's changes as the differences from its reference, found property by property where
+    the reference has the settings too; where it has none (a rig saved without VP-FFD's settings
+    on that object), the whole of `vpffd` is recorded as one pointer to replace, which Blender
+    cannot apply when the file is opened again, and every VP-FFD setting of the override is lost
+    (docs/stack.md, "Library overrides"). Called for every override VP-FFD binds and looks at, so
+    the reference has them whenever Blender compares (on save, and on every undo step)."""
+    override = getattr(obj, "override_library", None)
+    reference = override.reference if override is not None else None
+    if reference is not None and obj.library is None:
+        reference.vpffd
+
+
 def claim(obj, mod):
     """The settings of `mod`, made when none name it: `obj.vpffd` when it names no bound
     deformer, else a new entry of `obj.vpffd_extra`. Writes the modifier's uid into them."""
+    reference_settings(obj)
     mods = modifier.find_all(obj)
     s = settings_of(obj, mod, mods)
     if s is None:

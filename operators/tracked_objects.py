@@ -48,6 +48,8 @@ def candidates():
                 found |= users
         _candidates["objects"] = tuple(sorted(
             found, key=lambda ob: (ob.library.filepath if ob.library else "", ob.name)))
+        for ob in _candidates["objects"]:
+            deformers.reference_settings(ob)     # a file opened, a modifier added: before any save
         _candidates["key"] = key
     return _candidates["objects"]
 

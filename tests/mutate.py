@@ -170,11 +170,6 @@ MUTATIONS = {
         "    linked = tagged and not writable(ob)\n",
         "    linked = False\n",
         ["tests/test_linked_blender.py", "-k", "overrides_it"], {}),
-    "override-reference-without-settings": (
-        "operators/deformers.py",
-        "    if reference is not None and obj.library is None:\n        reference.vpffd\n",
-        "",
-        ["tests/test_stack_blender.py", "-k", "library_override_of_a_linked"], {}),
     "instances-skipped": (
         "operators/tracked_objects.py",
         "        if ob.library is not None and _bound(ob)",

@@ -472,6 +472,10 @@ def _overridden_character(tmp_path):
     for ob in (body, bpy.data.objects["Rig"]):
         bpy.context.scene.collection.objects.unlink(ob)
         character.objects.link(ob)
+        # As a character saved where VP-FFD never looked at it: no VP-FFD settings on its objects
+        # (the update reads them on every object of the scene, which makes them).
+        ob.property_unset("vpffd")
+        ob.property_unset("vpffd_extra")
     bpy.ops.wm.save_as_mainfile(filepath=library)
     eh.reset_scene()
     bpy.context.scene.frame_set(1)

@@ -638,6 +638,10 @@ def main(argv=None):
     ap.add_argument("--no-stack", action="store_true", help="skip the modifier-stack frame_set figures")
     ap.add_argument("--stack-only", action="store_true",
                     help="only the modifier-stack figures (benchmarks/stack_benchmark.py)")
+    ap.add_argument("--shot-size", action="store_true",
+                    help="only VP-FFD's added cost against the number of unrelated objects "
+                         "(benchmarks/shot_size.py)")
+    ap.add_argument("--no-shot-size", action="store_true", help="skip the shot-size figures")
     ap.add_argument("--no-scaling", action="store_true",
                     help="skip the table of the core's solve and re-embedding on 1, 2, ... all cores")
     args = ap.parse_args(argv)
@@ -651,6 +655,10 @@ def main(argv=None):
         if not use_blender:
             ap.error("--stack-only needs Blender")
         return stack_main(args)
+    if args.shot_size:
+        if not use_blender:
+            ap.error("--shot-size needs Blender")
+        return shot_size_main(args)
 
     t0 = time.perf_counter()
     if not compiled.load():
@@ -669,6 +677,7 @@ def main(argv=None):
     convergence = None if args.no_cage else cage_convergence()
     stack = stack_figures() if use_blender and not args.no_stack else None
     scaling = None if args.no_scaling else scaling_figures()
+    shot = shot_size_figures() if use_blender and not args.no_shot_size else None
     report = {
         "benchmark": "vpffd",
         "lattice": {"shape": list(LATTICE_SHAPE), "interpolation": "BSPLINE", "bounds": [[-0.5] * 3, [0.5] * 3],
@@ -682,6 +691,7 @@ def main(argv=None):
         "cage_convergence": convergence,
         "stack": stack,
         "scaling": scaling,
+        "shot_size": shot,
         "total_seconds": None,
     }
     report["total_seconds"] = time.perf_counter() - t0
@@ -690,6 +700,8 @@ def main(argv=None):
         update_readme(report)
         if stack is not None:
             update_stack_readme(stack)
+        if shot is not None:
+            update_shot_size_readme(shot)
     log(f"done in {report['total_seconds']:.1f} s")
     return 0
 
@@ -752,6 +764,40 @@ def stack_main(args):
     _emit(report, args.out)
     if args.update_readme:
         update_stack_readme(stack)
+    log(f"done in {report['total_seconds']:.1f} s")
+    return 0
+
+
+def shot_size_figures():
+    """VP-FFD's added cost per frame and per unrelated edit against the number of unrelated
+    objects, each figure from fresh processes (benchmarks/shot_size.py); the table to stderr."""
+    from benchmarks import shot_size
+    report = shot_size.run()
+    log("  a shot's size:\n" + shot_size.markdown(report))
+    return report
+
+
+def update_shot_size_readme(shot, path=SPEED_PAGE):
+    """Rewrite the shot-size table between its markers in docs/speed.md."""
+    from benchmarks import shot_size
+    env = environment(True)
+    body = (f"\n<!-- written by ./dev bench --shot-size --update-readme -->\n\nMeasured by `./dev bench "
+            f"--shot-size` on {datetime.date.today().isoformat()} with Blender {env['bpy']} (the `bpy` "
+            f"module), {env['cpu_count']} CPU cores; medians of {shot['rounds']} rounds, each a fresh "
+            f"process of {shot['frames']} frames and {shot['edits']} edits.\n\n"
+            + shot_size.markdown(shot) + "\n")
+    start, end = "<!-- shot-size:start -->", "<!-- shot-size:end -->"
+    _rewrite(path, start, end, start + body + end)
+
+
+def shot_size_main(args):
+    t0 = time.perf_counter()
+    shot = shot_size_figures()
+    report = {"benchmark": "vpffd-shot-size", "environment": environment(True), "shot_size": shot,
+              "total_seconds": time.perf_counter() - t0}
+    _emit(report, args.out)
+    if args.update_readme:
+        update_shot_size_readme(shot)
     log(f"done in {report['total_seconds']:.1f} s")
     return 0
 

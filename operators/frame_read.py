@@ -76,13 +76,22 @@ def read(d, state, depsgraph, helpers_taken):
                   stale_weights=stale_weights, may_write=not rendering)
 
 
+def _in_a_scene(ob, depsgraph):
+    """Whether object `ob` is in a scene: the depsgraph's own (a lookup by name, whatever the
+    scene's size), else any (`Object.users_scene` walks every object of every scene: milliseconds
+    in a big shot, so only for a lattice outside the shown scene)."""
+    scene = depsgraph.scene
+    if scene is not None and scene.objects.get(ob.name) == ob:
+        return True
+    return any(True for _ in ob.users_scene)
+
+
 def _control(d, state, depsgraph):
     """The bound deformer's Lattice or cage, or None (zero offsets shown, the panel says why). A
     lattice the user deleted is let go, as Blender's Lattice modifier lets go of it."""
     s = d.settings
     lat_ob = s.lattice
-    if lat_ob is not None and not any(True for _ in lat_ob.users_scene) \
-            and depsgraph.mode != "RENDER":
+    if lat_ob is not None and depsgraph.mode != "RENDER" and not _in_a_scene(lat_ob, depsgraph):
         # Deleted (X): Delete only unlinks an object that still has users, and these settings
         # and the modifier's input are users (undo links it again: `relink_after_undo`).
         state.deleted = lat_ob.name

@@ -7,7 +7,7 @@ from bpy.app.handlers import persistent
 
 from . import deformers, modifier, tracked_objects
 from .bound import forget, invalidate, relink_after_undo
-from .update import bound_objects, update_scene
+from .update import update_scene
 
 log = logging.getLogger(__name__)
 
@@ -47,15 +47,13 @@ def on_load(*_args) -> None:
     forget()
     tracked_objects.forget()
     try:
-        for scene in bpy.data.scenes:
-            for ob in bound_objects(scene):
-                # Files bound by older versions have an older node group and no solver helper,
-                # and settings that do not name their modifier yet.
-                if ob.library is None:
-                    for d in deformers.bound(ob):
-                        if d.mod is not None:
-                            modifier.prepare(ob, d.mod, deformers.claim(ob, d.mod))
-            if bound_objects(scene):
+        for ob in tracked_objects.local_bound():
+            # Files bound by older versions have an older node group and no solver helper,
+            # and settings that do not name their modifier yet.
+            for d in deformers.bound(ob):
+                if d.mod is not None:
+                    modifier.prepare(ob, d.mod, deformers.claim(ob, d.mod))
+            for scene in ob.users_scene:
                 scene.render.use_lock_interface = True
         context = bpy.context
         if context.scene is not None:
@@ -74,10 +72,9 @@ def on_undo(*_args) -> None:
     invalidate()
     tracked_objects.forget()
     try:
-        for scene in bpy.data.scenes:
-            for ob in bound_objects(scene):
-                for d in deformers.bound(ob):
-                    relink_after_undo(d, bpy.data.objects)
+        for ob in tracked_objects.local_bound():
+            for d in deformers.bound(ob):
+                relink_after_undo(d, bpy.data.objects)
         context = bpy.context
         if context.scene is not None:
             _guarded(context.scene, context.evaluated_depsgraph_get())

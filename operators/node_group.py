@@ -24,6 +24,10 @@ NODE_GROUP_NAME = "VP-FFD"
 GROUP_TAG = "vpffd_offset_group"  # custom property marking our node group, whatever it is renamed to
 
 
+#: how many groups `_build` has tagged in this session: a group is tagged after bpy.data holds it,
+#: so a look at the groups in between (an update that Bind runs) must not be kept
+builds = [0]
+
 GROUP_VERSION = 8                 # the tag's value: groups of older versions are rebuilt
 
 
@@ -328,6 +332,7 @@ def _build(ng):
         node.location = (x, y)
     ng[GROUP_TAG] = GROUP_VERSION
     ng[_KIND] = kind
+    builds[0] += 1
 
 
 def hide_inputs(ng):

@@ -11,11 +11,10 @@ import bpy
 import numpy as np
 
 from ..vpffd_addon import wireframe
-from . import deformers
+from . import deformers, tracked_objects
 from .bound import state_of
 from .status import status
 from .text import percent
-from .update import bound_objects
 
 log = logging.getLogger(__name__)
 
@@ -55,10 +54,7 @@ def falloff_geometry(target):
 
 def _visible(context):
     """(object, deformer, drawn) of every bound deformer whose overlay is on and shown."""
-    scene = context.scene
-    for ob in bound_objects(scene):
-        if not ob.visible_get():
-            continue
+    for ob in tracked_objects.shown(context.view_layer):
         for d in deformers.bound(ob):
             if d.settings.show_overlay:
                 drawn = overlay_geometry(d)

@@ -119,9 +119,6 @@ def request_update(obj):
 # ---------------------------------------------------------------------------------------- bind
 
 
-bound_objects = tracked_objects.in_scene
-
-
 def _linked_without_override(d):
     """Deformer `d`'s object is linked from a library with no library override (a collection
     instance of a rig, say): linked data is read-only, so nothing VP-FFD solves can reach it, and

@@ -170,11 +170,26 @@ MUTATIONS = {
         "    linked = tagged and not writable(ob)\n",
         "    linked = False\n",
         ["tests/test_linked_blender.py", "-k", "overrides_it"], {}),
+    "override-reference-without-settings": (
+        "operators/deformers.py",
+        "    if reference is not None and obj.library is None:\n        reference.vpffd\n",
+        "",
+        ["tests/test_stack_blender.py", "-k", "library_override_of_a_linked"], {}),
     "instances-skipped": (
         "operators/tracked_objects.py",
-        "        if ob.library is not None and _bound(ob)",
-        "        if False and _bound(ob)",
+        "            evaluated = ob.evaluated_get(depsgraph).is_evaluated\n",
+        "            evaluated = ob.library is None and ob.evaluated_get(depsgraph).is_evaluated\n",
         ["tests/test_linked_blender.py", "-k", "unbaked"], {}),
+    "tracked-groups-before-tag": (
+        "operators/tracked_objects.py",
+        "    key = (len(node_groups), node_group.builds[0])",
+        "    key = (len(node_groups), 0)",
+        ["tests/test_extension_blender.py", "-k", "pinned_vertex_group_follows"], {}),
+    "render-nested-collections-unseen": (
+        "operators/update.py",
+        "        stack.extend(layer_collection.children)\n",
+        "        pass\n",
+        ["tests/test_linked_blender.py", "-k", "overrides_it and python"], {}),
     "qr-pair-unfolded": (
         "vpffd_addon/solve_kernels.py",
         "            da2 = t2 * (da2 - da1 * c)\n            db2 = t2 * (db2 - db1 * c)",
@@ -242,8 +257,8 @@ MUTATIONS = {
         ["tests/test_outside_target_blender.py", "-k", "gives_back"], {}),
     "undo-relink-noop": (
         "operators/handlers.py",
-        "                    relink_after_undo(d, bpy.data.objects)",
-        "                    pass",
+        "                relink_after_undo(d, bpy.data.objects)",
+        "                pass",
         ["tests/test_lifecycle_blender.py", "-k", "undo"], {}),
     "fit-margin-ignored": (
         "operators/fit.py",

@@ -542,6 +542,113 @@ def session():
           view_after[0] == view_before[0] != "CAMERA"
           and np.allclose(view_after[1], view_before[1], atol=1e-5)
           and abs(view_after[2] - view_before[2]) <= 1e-5, (view_before, view_after))
+    yield from outliner_override(ops)
+
+
+def outliner_override(ops):
+    """A rig bound in its own file and linked into a shot, overridden from the Outliner's context
+    menu (Library Override > Make > Selected & Content): its mesh follows the rig file's lattice
+    animation, Correction None as a twin with Blender's Lattice modifier, XYZ keeping the volume."""
+    win = bpy.context.window_manager.windows[0]
+    win.scene = bpy.data.scenes.new("Rig")
+    yield 0.5
+    layer = win.view_layer
+    char = bpy.data.collections.new("Character")
+    win.scene.collection.children.link(char)
+
+    def into_character(ob):
+        for c in ob.users_collection:
+            c.objects.unlink(ob)
+        char.objects.link(ob)
+
+    op("object.add", type="LATTICE", location=(0.0, 0.0, 0.0))
+    lat = layer.objects.active
+    lat.name, lat.scale = "Lattice", (1.8, 1.8, 1.8)
+    lat.data.points_u = lat.data.points_v = lat.data.points_w = 3
+    lat.shape_key_add(name="Basis")
+    squash = lat.shape_key_add(name="Squash")
+    for p in squash.data:                     # squashed, bulging in its middle
+        x, y, z = p.co
+        bulge = 1.0 + 0.35 * (1.0 - 4.0 * z * z)
+        p.co = (x * bulge, y * bulge, z * 0.6)
+    for f, v in ((1, 0.0), (20, 1.0)):
+        squash.value = v
+        squash.keyframe_insert("value", frame=f)
+    into_character(lat)
+    names = {}
+    for name in ("Body", "Twin"):
+        op("mesh.primitive_ico_sphere_add", subdivisions=3, radius=0.7, location=(0.0, 0.0, 0.0))
+        ob = layer.objects.active
+        ob.name = name
+        into_character(ob)
+        names[name] = ob.name
+    twin = bpy.data.objects[names["Twin"]]
+    twin.modifiers.new("Lattice", "LATTICE").object = lat
+    body = bpy.data.objects[names["Body"]]
+    select_only(body)
+    body.vpffd.lattice, body.vpffd.axes = lat, "XYZ"
+    op("object.vpffd_bind")
+    yield 0.5
+    rig_file = os.path.join(OUT, "char_rig.blend")
+    bpy.data.libraries.write(rig_file, {char}, path_remap="RELATIVE_ALL")
+
+    # The shot: the rig's collection linked, then Make > Selected & Content in the Outliner.
+    win.scene = bpy.data.scenes.new("Shot")
+    with bpy.data.libraries.load(rig_file, link=True) as (_src, dst):
+        dst.collections = ["Character"]
+    win.scene.collection.children.link(dst.collections[0])
+    win.scene.frame_set(10)
+    # The linked mesh made active and selected with the viewport's own selection operator, which
+    # the Outliner follows (its synced selection) at its next redraw: the Outliner's operators
+    # act on an active item, as the one right-clicked.
+    linked_body = next(o for o in bpy.data.objects if o.name == "Body" and o.library is not None)
+    yield 0.5
+    layer = win.view_layer
+    layer.objects.active = linked_body
+    op("object.select_pattern", pattern="Body", extend=False)
+    yield 1.0
+    area = next(a for a in win.screen.areas if a.type == "OUTLINER")
+    region = next(r for r in area.regions if r.type == "WINDOW")
+    with bpy.context.temp_override(window=win, screen=win.screen, area=area, region=region):
+        bpy.ops.outliner.select_all(action="SELECT")     # the linked collection and its content
+        result = bpy.ops.outliner.liboverride_operation(
+            "EXEC_DEFAULT", True, type="OVERRIDE_LIBRARY_CREATE_HIERARCHY",
+            selection_set="SELECTED_AND_CONTENT")
+    yield 1.0
+
+    def overridden(name):
+        # the override of the rig's object `name` (the rig's own copy here has that name)
+        return next((o for o in bpy.data.objects if o.override_library is not None
+                     and o.override_library.reference.name == name), None)
+    body, twin = overridden("Body"), overridden("Twin")
+    check("the Outliner's Library Override > Make overrides the linked rig", result == {"FINISHED"}
+          and body is not None and twin is not None, (result, body, twin))
+    if body is None or twin is None:
+        return
+    rows = []
+    for f in (4, 16):
+        win.scene.frame_set(f)
+        yield 0.5
+        mod = next(m for m in body.modifiers if m.type == "NODES")
+        mod.show_viewport = False
+        yield 0.3
+        v_in = volume(*evaluated(body))
+        mod.show_viewport = True
+        yield 0.5
+        co, tris = evaluated(body)
+        body.vpffd.axes = "NONE"
+        yield 0.5
+        plain = evaluated(body)[0]
+        body.vpffd.axes = "XYZ"
+        yield 0.3
+        other = evaluated(twin)[0]
+        rows.append((f, abs(volume(co, tris) / v_in - 1), float(np.abs(plain - other).max()),
+                     float(np.abs(other - mesh_arrays(twin.data)[0]).max()),
+                     ops.status.stats(body).get("error")))
+    check("the Outliner's override follows the rig's lattice: Correction None as the Lattice "
+          "modifier, XYZ keeping the volume", all(vol <= VOLUME_TOL and shape <= 1e-5 and moved > 0.01
+                                                  and error is None
+                                                  for _, vol, shape, moved, error in rows), rows)
 
 
 def two_deformers(ops):

@@ -2,7 +2,9 @@
 GUI on a virtual display (Xvfb) and `gui_session.py` drives it from timers with operators in the
 window's own context: Add > VP-FFD Demos, playback (`screen.animation_play`), the lattice's Edit
 Mode with `transform.resize`, `ed.undo`/`ed.redo`, Ctrl+A (`object.modifier_apply`), Delete
-(`object.delete`), Show Corrected Lattice, switching the modifier off, and a bake in progress.
+(`object.delete`), Show Corrected Lattice, switching the modifier off, a bake in progress, and
+a rig bound in its own file, linked into a shot and overridden from the Outliner (Library Override
+> Make > Selected & Content).
 Every check measures Blender's evaluated mesh (float32 coordinates, volume computed here
 independently) or the panel's figures against it.
 

@@ -756,16 +756,22 @@ def update_stack_readme(stack, path=SPEED_PAGE):
         fh.write(head + start + body + end + tail)
 
 
-def stack_main(args):
+def _one_table_main(args, name, key, figures, update):
+    """Run one table's benchmark alone (`figures()`), emit its report as `key`, and rewrite its
+    table with `update` when asked."""
     t0 = time.perf_counter()
-    stack = stack_figures()
-    report = {"benchmark": "vpffd-stack", "environment": environment(True), "stack": stack,
+    table = figures()
+    report = {"benchmark": name, "environment": environment(True), key: table,
               "total_seconds": time.perf_counter() - t0}
     _emit(report, args.out)
     if args.update_readme:
-        update_stack_readme(stack)
+        update(table)
     log(f"done in {report['total_seconds']:.1f} s")
     return 0
+
+
+def stack_main(args):
+    return _one_table_main(args, "vpffd-stack", "stack", stack_figures, update_stack_readme)
 
 
 def shot_size_figures():
@@ -791,15 +797,8 @@ def update_shot_size_readme(shot, path=SPEED_PAGE):
 
 
 def shot_size_main(args):
-    t0 = time.perf_counter()
-    shot = shot_size_figures()
-    report = {"benchmark": "vpffd-shot-size", "environment": environment(True), "shot_size": shot,
-              "total_seconds": time.perf_counter() - t0}
-    _emit(report, args.out)
-    if args.update_readme:
-        update_shot_size_readme(shot)
-    log(f"done in {report['total_seconds']:.1f} s")
-    return 0
+    return _one_table_main(args, "vpffd-shot-size", "shot_size", shot_size_figures,
+                           update_shot_size_readme)
 
 
 if __name__ == "__main__":

@@ -53,10 +53,12 @@ def evaluated(ob):
     e.to_mesh_clear()
     return co.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3)
 
-def volume(ob):
-    co, t = evaluated(ob)
+def triangle_volume(co, t):
     a, b, c = co[t[:, 0]], co[t[:, 1]], co[t[:, 2]]
     return float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+
+def volume(ob):
+    return triangle_volume(*evaluated(ob))
 
 def vp_modifier(ob):
     return next(m for m in ob.modifiers if m.type == "NODES")
@@ -67,6 +69,16 @@ def deformers(ob):
 def errors(ob):
     return [ops.status.stats(d).get("error") for d in deformers(ob)]
 
+def input_volume(body):
+    """What reaches the first VP-FFD modifier: the volume with every VP-FFD modifier off."""
+    ds = deformers(body)
+    for d in ds:
+        d.mod.show_viewport = False
+    v_in = volume(body)
+    for d in ds:
+        d.mod.show_viewport = True
+    return v_in
+
 def measure(body, twin, frames):
     """Per frame, with every VP-FFD deformer of the body: |None - twin| / size, |V_XYZ / V_in - 1|
     (V_in: what reaches the first, the stack with VP-FFD switched off), the panel's errors."""
@@ -74,11 +86,7 @@ def measure(body, twin, frames):
     for f in frames:
         bpy.context.scene.frame_set(f)
         ds = deformers(body)
-        for d in ds:
-            d.mod.show_viewport = False
-        v_in = volume(body)
-        for d in ds:
-            d.mod.show_viewport = True
+        v_in = input_volume(body)
         v_out = volume(body)
         error = errors(body)
         for d in ds:
@@ -286,16 +294,9 @@ if RENDER:      # an animation render, as `blender -b shot.blend -a` on a farm
     for r in rendered:
         scene.frame_set(r["frame"])
         a, t = evaluated(body)
-        ds = deformers(body)
-        for d in ds:
-            d.mod.show_viewport = False
-        v_in = volume(body)
-        for d in ds:
-            d.mod.show_viewport = True
         co = r.pop("co").reshape(-1, 3).astype(np.float64)
-        x, y, z = co[t[:, 0]], co[t[:, 1]], co[t[:, 2]]
         r.update(shape=float(np.abs(co - a).max() / np.ptp(a, 0).max()),
-                 volume=abs(float(np.einsum("ij,ij->", x, np.cross(y, z)) / 6.0) / v_in - 1))
+                 volume=abs(triangle_volume(co, t) / input_volume(body) - 1))
 scene.frame_set(20)
 info = ops.status.status(body)
 report(after=after, rendered=rendered, target_from=info.target_from, percent=info.input_percent)
@@ -376,9 +377,7 @@ for f in (1, 10, 20):
     basis = np.empty(len(body.data.vertices) * 3, np.float32)
     body.data.shape_keys.key_blocks["Basis"].data.foreach_get("co", basis)
     co = basis.reshape(-1, 3).astype(np.float64) * (1 + 0.2 * w)
-    _, t = evaluated(body)
-    a, b, c = co[t[:, 0]], co[t[:, 1]], co[t[:, 2]]
-    v_in = float(np.einsum("ij,ij->", a, np.cross(b, c)) / 6.0)
+    v_in = triangle_volume(co, evaluated(body)[1])
     rows.append(dict(frame=f, volume=volume(body) / v_in, error=errors(body),
                      shapes=[(a, p, c.tolist()) for a, p, c in shapes]))
 report(rows=rows)
